@@ -1,0 +1,92 @@
+"""jaxskel: automatic articulated skeletons from optical motion-capture markers, on JAX.
+
+The flat public API lives here; the implementation is in small private modules
+(``jaxskel._trial``, ``jaxskel._clean``, ...). Names are imported lazily so that
+``import jaxskel`` stays fast and a command-line call pays only for what it uses.
+
+jaxskel enables JAX's 64-bit mode on import (joint fitting needs float64 accuracy;
+arrays passed as float32 still compute in float32). Set ``JAXSKEL_NO_X64=1`` before
+importing to leave JAX's global setting alone.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from typing import TYPE_CHECKING, Any
+
+__version__ = "0.1.0"
+
+if not os.environ.get("JAXSKEL_NO_X64"):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+# public name -> private module that defines it
+_LAZY = {
+    # errors
+    "JaxskelError": "_errors",
+    "InputError": "_errors",
+    "DegenerateMotionError": "_errors",
+    "SchemaError": "_errors",
+    "ConvergenceWarning": "_errors",
+    "UnitsWarning": "_errors",
+    # data model and I/O
+    "Trial": "_trial",
+    "bucket_size": "_padding",
+    "load": "_io",
+    "save_trial": "_io",
+    # cleaning
+    "clean": "_clean",
+    "CleaningReport": "_clean",
+    # skeleton from markers (Kirk et al. 2005)
+    "segment_markers": "_segment",
+    "Segmentation": "_segment",
+    "joint_costs": "_topology",
+    "fit_topology": "_topology",
+    "Topology": "_topology",
+    "solve_joint": "_jointcost",
+    "JointSolution": "_jointcost",
+    "fit_skeleton": "_fit",
+    "SkeletonResult": "_fit",
+    "load_result": "_result_io",
+    # rigid skeleton, IK and exports
+    "fit_rigid": "_rigid",
+    "Skeleton": "_rigid",
+    "inverse_kinematics": "_ik",
+    "Motion": "_ik",
+    "export_bvh": "_bvh",
+    "read_bvh": "_bvh",
+    # passive-marker correspondence
+    "merge_labels": "_relabel",
+    "LabelMapping": "_relabel",
+    # Sar Dessai et al. 2006
+    "normalize": "_normalize",
+    "Normalization": "_normalize",
+    "parameterize": "_parameterize",
+    "Parameterization": "_parameterize",
+    # many trials
+    "fit_batch": "_batch",
+}
+
+__all__ = sorted([*_LAZY, "synth", "__version__"])
+
+
+def __getattr__(name: str) -> Any:
+    if name == "synth":
+        return importlib.import_module(".synth", __name__)
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'jaxskel' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__
+
+
+if TYPE_CHECKING:  # pragma: no cover - for static tooling only
+    from ._errors import *  # noqa: F403
+    from ._trial import Trial  # noqa: F401

@@ -1,0 +1,44 @@
+"""One exception family for everything jaxskel raises on purpose.
+
+Every message says what is wrong *and* what to do about it; callers can catch
+:class:`JaxskelError` to handle all of them.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "JaxskelError",
+    "InputError",
+    "DegenerateMotionError",
+    "SchemaError",
+    "ConvergenceWarning",
+    "UnitsWarning",
+]
+
+
+class JaxskelError(Exception):
+    """Base class of every error jaxskel raises deliberately."""
+
+
+class InputError(JaxskelError, ValueError):
+    """The input (a file, an array, an argument) is malformed or unusable."""
+
+
+class DegenerateMotionError(JaxskelError):
+    """The motion does not contain the information a stage needs.
+
+    Examples: a joint that is never exercised, a segment with too few markers,
+    every marker lost in the same frame.
+    """
+
+
+class SchemaError(JaxskelError):
+    """A result file was written by an incompatible jaxskel version."""
+
+
+class ConvergenceWarning(UserWarning):
+    """A solver stopped before meeting its tolerance; see the result's diagnostics."""
+
+
+class UnitsWarning(UserWarning):
+    """A file did not state its units and an assumption was made."""

@@ -1,0 +1,166 @@
+"""Small rigid-body geometry in JAX: quaternions, rotation matrices, Horn alignment.
+
+Conventions (used everywhere in jaxskel):
+
+* Quaternions are ``(w, x, y, z)`` with ``w`` the scalar part, unit norm, and
+  act on column vectors: ``v' = q v q*`` equals ``R(q) @ v``.
+* A pose ``(R, t)`` maps a point from a segment's local frame to the world:
+  ``x_world = R @ x_local + t``.
+* Masks, not NaNs: weights/masks select which points take part.
+
+All functions are pure, jit/vmap/grad-able, and follow the dtype of their input.
+"""
+
+from __future__ import annotations
+
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+__all__ = [
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_normalize",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "quat_rotate",
+    "axis_angle_to_quat",
+    "quat_to_axis_angle",
+    "skew",
+    "horn_align",
+]
+
+
+def quat_multiply(p: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    """Hamilton product ``p q`` (apply q first, then p)."""
+    pw, px, py, pz = jnp.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = jnp.moveaxis(q, -1, 0)
+    return jnp.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    """Conjugate (the inverse of a unit quaternion)."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+
+
+def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    """Unit quaternion with non-negative ``w`` (a canonical sign; safe at q = 0)."""
+    n = jnp.sqrt(jnp.sum(q * q, axis=-1, keepdims=True))
+    q = q / jnp.where(n > 0, n, 1.0)
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_matrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
+    """Rotation matrix of a (not necessarily unit) quaternion; scale is divided out."""
+    w, x, y, z = jnp.moveaxis(q, -1, 0)
+    n = w * w + x * x + y * y + z * z
+    s = 2.0 / jnp.where(n > 0, n, 1.0)
+    rows = [
+        [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
+        [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
+        [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
+    """Unit quaternion (w >= 0) of a rotation matrix.
+
+    Uses the largest of the four diagonal combinations (Shepperd's method), so it
+    is accurate for every rotation including half turns.
+    """
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = jnp.stack(
+        [
+            jnp.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            jnp.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            jnp.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m00 + m11 - m22, m[..., 1, 2] + m[..., 2, 1]], -1),
+            jnp.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        axis=-2,
+    )
+    pick = jnp.argmax(jnp.stack([tr, m00, m11, m22], -1), axis=-1)
+    q = jnp.take_along_axis(cands, pick[..., None, None], axis=-2)[..., 0, :]
+    return quat_normalize(q)
+
+
+def quat_rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """Rotate vectors ``v`` by unit quaternions ``q`` (broadcasting)."""
+    w = q[..., :1]
+    u = q[..., 1:]
+    t = 2.0 * jnp.cross(u, v)
+    return v + w * t + jnp.cross(u, t)
+
+
+def axis_angle_to_quat(rotvec: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
+    """Quaternion of a rotation vector (axis * angle in radians); smooth at 0."""
+    theta2 = jnp.sum(rotvec * rotvec, axis=-1, keepdims=True)
+    small = theta2 < 1e-12
+    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
+    half = 0.5 * theta
+    # sin(theta/2)/theta, with its Taylor series near 0 so gradients stay finite.
+    k = jnp.where(small, 0.5 - theta2 / 48.0, jnp.sin(half) / theta)
+    w = jnp.where(small, 1.0 - theta2 / 8.0, jnp.cos(half))
+    return jnp.concatenate([w, k * rotvec], axis=-1)
+
+
+def quat_to_axis_angle(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
+    """Rotation vector (angle in [0, pi]) of a unit quaternion."""
+    q = quat_normalize(q)
+    w = q[..., :1]
+    u = q[..., 1:]
+    s2 = jnp.sum(u * u, axis=-1, keepdims=True)
+    small = s2 < 1e-12
+    s = jnp.sqrt(jnp.where(small, 1.0, s2))
+    angle = 2.0 * jnp.arctan2(s, w)
+    k = jnp.where(small, 2.0 / jnp.where(w == 0, 1.0, w), angle / s)
+    return k * u
+
+
+def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Cross-product matrix: ``skew(a) @ b == cross(a, b)``."""
+    x, y, z = jnp.moveaxis(v, -1, 0)
+    o = jnp.zeros_like(x)
+    return jnp.stack(
+        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
+    )
+
+
+def horn_align(
+    source: Float[Array, "N 3"],
+    target: Float[Array, "N 3"],
+    weights: Float[Array, " N"] | None = None,
+) -> tuple[Float[Array, "3 3"], Float[Array, " 3"]]:
+    """Weighted least-squares rigid alignment (Horn 1987 / Kabsch via SVD).
+
+    Returns ``(R, t)`` minimising ``sum_i w_i |R source_i + t - target_i|^2`` with
+    R a proper rotation (det +1). Points with zero weight are ignored, so a mask
+    can be passed as ``weights``. With fewer than three non-collinear weighted
+    points the rotation is not unique; the SVD then returns one minimiser.
+    vmap it over frames/segments; it is differentiable where the alignment is unique.
+    """
+    if weights is None:
+        weights = jnp.ones(source.shape[:-1], dtype=source.dtype)
+    w = weights.astype(source.dtype)
+    wsum = jnp.sum(w)
+    wn = w / jnp.where(wsum > 0, wsum, 1.0)
+    mu_s = jnp.sum(wn[:, None] * source, axis=0)
+    mu_t = jnp.sum(wn[:, None] * target, axis=0)
+    cov = jnp.einsum("n,ni,nj->ij", wn, target - mu_t, source - mu_s)
+    u, _, vt = jnp.linalg.svd(cov)
+    d = jnp.sign(jnp.linalg.det(u @ vt))
+    d = jnp.where(d == 0, 1.0, d)
+    diag = jnp.array([1.0, 1.0, 0.0], dtype=source.dtype) + jnp.array([0.0, 0.0, 1.0], dtype=source.dtype) * d
+    rot = (u * diag) @ vt
+    return rot, mu_t - rot @ mu_s
+
+
