@@ -1,0 +1,364 @@
+"""`fit_skeleton`: the whole chain from raw markers to an articulated skeleton.
+
+    Trial --clean--> --[merge labels]--> --segment--> --joint costs / MST / tree joints-->
+          --rigid skeleton--> --inverse kinematics--> SkeletonResult
+
+Each stage is a public function too (:func:`jaxskel.clean`,
+:func:`jaxskel.merge_labels`, :func:`jaxskel.segment_markers`,
+:func:`jaxskel.fit_topology`, :func:`jaxskel.fit_rigid`,
+:func:`jaxskel.inverse_kinematics`); this module only sequences them, keeps
+every stage's output and diagnostics, and reports progress.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ._clean import CleaningReport, clean
+from ._errors import DegenerateMotionError, InputError
+from ._segment import Segmentation, combine_trials, segment_markers
+from ._topology import Topology, fit_topology, joint_costs
+from ._trial import Trial
+
+__all__ = ["SkeletonResult", "fit_skeleton", "check_units"]
+
+
+def check_units(trial: Trial) -> None:
+    """Raise :class:`InputError` when positions are clearly not in metres.
+
+    A human or a lab linkage spans centimetres to a few metres per frame. The
+    median over frames of the largest marker distance from the frame's centroid
+    must lie in [1 cm, 20 m]; outside it the data are almost surely millimetres
+    read as metres (or similar).
+    """
+    x = trial.positions
+    with warnings.catch_warnings():
+        # Frames with no marker give all-NaN slices; they are skipped by the medians.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        centroid = np.nanmean(x, axis=1, keepdims=True)
+        spread = np.nanmax(np.linalg.norm(x - centroid, axis=-1), axis=1)
+        extent = float(np.nanmedian(spread))
+    if not np.isfinite(extent):
+        raise InputError(f"{trial.source or 'trial'}: no frame has any marker present")
+    if extent > 20.0:
+        raise InputError(
+            f"{trial.source or 'trial'}: markers spread {extent:.0f} units from their centroid; positions "
+            "look like millimetres, not metres. Load files with jaxskel.load (it converts units) or divide by 1000."
+        )
+    if extent < 0.01:
+        raise InputError(
+            f"{trial.source or 'trial'}: markers spread only {extent:.2g} units from their centroid; positions "
+            "do not look like metres (kilometres?). Convert to metres first."
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class SkeletonResult:
+    """Everything :func:`fit_skeleton` produced, stage by stage.
+
+    Attributes
+    ----------
+    input_labels
+        Marker labels of the input (after combining trials), as given.
+    trial
+        The cleaned (and label-merged) trial every later stage used.
+    cleaning
+        :class:`CleaningReport` (``None`` when cleaning was switched off).
+    label_mapping
+        Result of passive-marker merging, or ``None``.
+    segmentation, topology
+        Stage outputs (:class:`Segmentation`, :class:`Topology`).
+    skeleton, motion
+        Rigid skeleton and inverse-kinematics motion (``None`` when switched off).
+    segment_names
+        (S,) names, ``seg0..`` unless given.
+    trial_bounds
+        Frame range of each input trial in the combined recording.
+    timings
+        Seconds per stage.
+    settings
+        The arguments used.
+    """
+
+    input_labels: tuple[str, ...]
+    trial: Trial
+    cleaning: CleaningReport | None
+    label_mapping: Any
+    segmentation: Segmentation
+    topology: Topology
+    skeleton: Any
+    motion: Any
+    segment_names: tuple[str, ...]
+    trial_bounds: tuple[tuple[int, int], ...]
+    timings: dict[str, float]
+    settings: dict[str, Any]
+
+    # ------------------------------------------------------------- derived
+    @property
+    def n_segments(self) -> int:
+        return self.segmentation.n_segments
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self.topology.edges
+
+    @property
+    def joint_positions(self) -> np.ndarray:
+        """(F, J, 3) joint centres per frame (row j <-> edge j)."""
+        return self.topology.joint_positions
+
+    def marker_segment_input(self) -> np.ndarray:
+        """Segment of every *input* marker (-1 if dropped by cleaning or merged away)."""
+        index = {lab: i for i, lab in enumerate(self.segmentation.labels)}
+        phys = self.physical_input()
+        out = np.full(len(self.input_labels), -1, dtype=int)
+        merged_labels = self.trial.labels
+        for i, lab in enumerate(self.input_labels):
+            target = merged_labels[phys[i]] if phys[i] >= 0 else None
+            if target is not None and target in index:
+                out[i] = self.segmentation.marker_segment[index[target]]
+        return out
+
+    def physical_input(self) -> np.ndarray:
+        """Physical-marker index (into ``trial.labels``) of every input label, -1 if none."""
+        if self.label_mapping is not None:
+            physical = np.asarray(self.label_mapping.physical)
+            merged = tuple(self.label_mapping.physical_labels)
+            index = {lab: i for i, lab in enumerate(self.trial.labels)}
+            return np.array(
+                [index.get(merged[p], -1) if p >= 0 else -1 for p in physical], dtype=int
+            )
+        index = {lab: i for i, lab in enumerate(self.trial.labels)}
+        return np.array([index.get(lab, -1) for lab in self.input_labels], dtype=int)
+
+    def bone_lengths(self) -> dict[str, float]:
+        """Distance between the two joints of every segment with two or more joints.
+
+        Taken from the rigid skeleton when it exists, else the median over frames
+        of the per-frame joint distances.
+        """
+        out: dict[str, float] = {}
+        if self.skeleton is not None:
+            for (j0, j1), length in zip(self.skeleton.bones, self.skeleton.bone_lengths):
+                out[self._bone_name(j0, j1)] = float(length)
+            return out
+        jp = self.joint_positions
+        edges = self.edges
+        for s in range(self.n_segments):
+            js = [j for j, (p, c) in enumerate(edges) if p == s or c == s]
+            for a in range(len(js)):
+                for b in range(a + 1, len(js)):
+                    d = np.linalg.norm(jp[:, js[a]] - jp[:, js[b]], axis=-1)
+                    if np.isfinite(d).any():
+                        out[self._bone_name(js[a], js[b])] = float(np.nanmedian(d))
+        return out
+
+    def _bone_name(self, j0: int, j1: int) -> str:
+        names = self.segment_names
+        (p0, c0), (p1, c1) = self.edges[j0], self.edges[j1]
+        shared = ({int(p0), int(c0)} & {int(p1), int(c1)}).pop()
+        return f"{names[shared]}[{self.joint_name(j0)}-{self.joint_name(j1)}]"
+
+    def joint_name(self, j: int) -> str:
+        p, c = self.edges[j]
+        return f"{self.segment_names[p]}-{self.segment_names[c]}"
+
+    def summary(self) -> str:
+        """Segments with their markers, joints with their costs, bone lengths."""
+        lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
+        for name, group in zip(self.segment_names, self.segmentation.groups):
+            lines.append(f"  {name:>8}: {', '.join(group)}")
+        lines.append("joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged")
+        for j in range(len(self.edges)):
+            t = self.topology
+            lines.append(
+                f"  {self.joint_name(j):>17}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
+                f"{int(t.steps[j]):5d}  {bool(t.converged[j])}"
+            )
+        bones = self.bone_lengths()
+        if bones:
+            lines.append("bone lengths [m]:")
+            for name, length in bones.items():
+                lines.append(f"  {name}: {length:.4f}")
+        if self.motion is not None:
+            rms = np.asarray(self.motion.marker_rms)
+            lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
+        return "\n".join(lines)
+
+    __str__ = summary
+
+    def save(self, path: str, *, overwrite: bool = False) -> None:
+        """Write the HDF5 result file (schema in the README), atomically."""
+        from ._result_io import save_result
+
+        save_result(self, path, overwrite=overwrite)
+
+
+def _as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
+    if isinstance(trial_or_trials, Trial):
+        return [trial_or_trials]
+    if isinstance(trial_or_trials, (str, bytes)) or not isinstance(trial_or_trials, Sequence):
+        raise InputError(
+            "fit_skeleton takes a jaxskel.Trial or a list of Trials; load files with jaxskel.load(path)"
+        )
+    trials = list(trial_or_trials)
+    if not trials or not all(isinstance(t, Trial) for t in trials):
+        raise InputError("fit_skeleton takes a non-empty list of jaxskel.Trial objects")
+    return trials
+
+
+def fit_skeleton(
+    trial_or_trials: Trial | Sequence[Trial],
+    n_segments: int | None = None,
+    *,
+    root: int | str | None = None,
+    clean_data: bool = True,
+    merge_labels: bool | str = "auto",
+    alpha: float = 0.01,
+    alpha_tree: float | str = "auto",
+    method: str = "lm",
+    topology_frames: int = 300,
+    rigid: bool = True,
+    ik: bool = True,
+    segment_names: Sequence[str] | None = None,
+    seed: int = 0,
+    progress: bool = False,
+    clean_kwargs: dict[str, Any] | None = None,
+    segment_kwargs: dict[str, Any] | None = None,
+) -> SkeletonResult:
+    """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
+
+    Parameters
+    ----------
+    trial_or_trials
+        One :class:`Trial`, or several trials of one subject with one marker set
+        (fitted together: e.g. a range-of-motion trial plus a walk).
+    n_segments
+        Number of rigid segments, or ``None`` for the eigengap choice.
+    root
+        Root segment index or a marker label on it; default the tree's centre.
+    clean_data
+        Run :func:`jaxskel.clean` first (recommended for raw data).
+    merge_labels
+        Merge relabelled passive markers: ``True``, ``False``, or ``"auto"``: merge
+        when there are more labels than the most markers seen in any one frame.
+    alpha, alpha_tree, method, topology_frames
+        Joint solve settings (see :func:`jaxskel.joint_costs`, :func:`jaxskel.fit_topology`).
+    rigid, ik
+        Also fit the rigid skeleton and run inverse kinematics.
+    segment_names
+        Optional names for the segments (length S).
+    progress
+        Show a progress bar over the stages.
+    """
+    trials = _as_trials(trial_or_trials)
+    for t in trials:
+        check_units(t)
+    combined = combine_trials(trials)
+    bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
+    input_labels = combined.labels
+    timings: dict[str, float] = {}
+    stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(stages), desc="fit_skeleton", unit="stage")
+
+    def tick(name: str, t0: float) -> None:
+        timings[name] = time.perf_counter() - t0
+        if bar is not None:
+            bar.set_postfix_str(name)
+            bar.update(1)
+
+    t0 = time.perf_counter()
+    report = None
+    work = combined
+    if clean_data:
+        work, report = clean(work, **(clean_kwargs or {}))
+    tick("clean", t0)
+
+    t0 = time.perf_counter()
+    mapping = None
+    most_in_frame = int(work.mask.sum(axis=1).max()) if work.n_frames else 0
+    if merge_labels == "auto":
+        do_merge = work.n_markers > most_in_frame
+    elif isinstance(merge_labels, bool):
+        do_merge = merge_labels
+    else:
+        raise InputError(f"merge_labels must be True, False or 'auto', got {merge_labels!r}")
+    if do_merge:
+        from ._relabel import merge_labels as _merge
+
+        work, mapping = _merge(work)
+    tick("merge labels", t0)
+
+    if work.n_markers < 3:
+        raise DegenerateMotionError(
+            f"only {work.n_markers} markers remain after cleaning; a skeleton needs at least 3 "
+            "(see result.cleaning / the cleaning report for what was dropped)"
+        )
+    t0 = time.perf_counter()
+    segmentation = segment_markers(work, n_segments, seed=seed, **(segment_kwargs or {}))
+    tick("segment", t0)
+
+    t0 = time.perf_counter()
+    pairs = joint_costs(work, segmentation, alpha=alpha, max_frames=topology_frames, method=method)
+    tick("joint costs", t0)
+
+    t0 = time.perf_counter()
+    topology = fit_topology(
+        work, segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
+    )
+    tick("tree joints", t0)
+
+    names = tuple(segment_names) if segment_names is not None else tuple(
+        f"seg{i}" for i in range(segmentation.n_segments)
+    )
+    if len(names) != segmentation.n_segments:
+        raise InputError(
+            f"segment_names has {len(names)} names for {segmentation.n_segments} segments"
+        )
+
+    skeleton = motion = None
+    t0 = time.perf_counter()
+    if rigid and len(topology.edges):
+        from ._rigid import fit_rigid
+
+        skeleton = fit_rigid(
+            work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root
+        )
+    tick("rigid", t0)
+    t0 = time.perf_counter()
+    if ik and skeleton is not None:
+        from ._ik import inverse_kinematics
+
+        motion = inverse_kinematics(skeleton, work)
+    tick("ik", t0)
+    if bar is not None:
+        bar.close()
+
+    return SkeletonResult(
+        input_labels=input_labels,
+        trial=work,
+        cleaning=report,
+        label_mapping=mapping,
+        segmentation=segmentation,
+        topology=topology,
+        skeleton=skeleton,
+        motion=motion,
+        segment_names=names,
+        trial_bounds=bounds,
+        timings=timings,
+        settings=dict(
+            n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
+            alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
+            rigid=rigid, ik=ik, seed=seed,
+        ),
+    )

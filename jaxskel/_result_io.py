@@ -1,0 +1,271 @@
+"""The HDF5 result file: writing a :class:`SkeletonResult`, reading it back.
+
+Schema version 1 (documented in the README, "Result file"):
+
+* attributes on ``/``: ``schema_version``, ``jaxskel_version``, ``source``,
+  ``rate``, ``units`` = "m", ``up_axis``, ``created``;
+* ``/markers``: ``labels`` (M,) str as in the input, ``segment`` (M,) int (-1
+  dropped), ``physical`` (M,) int (physical-marker index after label merging,
+  identity otherwise, -1 dropped), ``used_labels`` (M',) the markers after
+  cleaning/merging, ``positions`` (F, M', 3) the cleaned positions (NaN missing);
+* ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``;
+* ``/topology``: ``joint_cost`` (S, S) (inf = infeasible), ``edges`` (J, 2)
+  parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
+  (n, 2) pairs with ``infeasible_reason`` (n,) str;
+* ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
+  ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded;
+* ``/skeleton`` and ``/motion`` (when fitted, see the README);
+* ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
+  ``timings`` as attributes, the cleaning report, settings.
+
+Everything is written to a temporary file and renamed into place, so an
+interrupted write never leaves a file that looks complete.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ._atomic import atomic_output
+from ._errors import InputError, SchemaError
+
+__all__ = ["SCHEMA_VERSION", "save_result", "load_result", "ResultFile"]
+
+SCHEMA_VERSION = 1
+_STR = h5py.string_dtype(encoding="utf-8")
+
+
+def _strings(values: Any) -> np.ndarray:
+    return np.asarray([str(v) for v in values], dtype=object)
+
+
+def _put(group: h5py.Group, name: str, value: Any) -> None:
+    arr = np.asarray(value)
+    if arr.dtype.kind in ("U", "O", "S"):
+        group.create_dataset(name, data=_strings(arr.ravel()).reshape(arr.shape), dtype=_STR)
+    elif arr.ndim >= 2 and arr.size > 4096:
+        group.create_dataset(name, data=arr, compression="gzip", compression_opts=4, shuffle=True)
+    else:
+        group.create_dataset(name, data=arr)
+
+
+def _write_skeleton(g: h5py.Group, skeleton: Any) -> None:
+    for name in ("marker_offsets", "joint_offsets", "bones", "bone_lengths", "marker_rms"):
+        if getattr(skeleton, name, None) is not None:
+            _put(g, name, np.asarray(getattr(skeleton, name)))
+    if getattr(skeleton, "nonrigid_markers", None) is not None:
+        _put(g, "nonrigid_markers", np.asarray(skeleton.nonrigid_markers))
+
+
+def _write_motion(g: h5py.Group, motion: Any) -> None:
+    for src, dst in (
+        ("root_position", "root_position"),
+        ("rotations", "rotations"),
+        ("segment_translations", "segment_translations"),
+        ("joint_positions", "joint_positions"),
+        ("fitted_markers", "fitted_markers"),
+        ("marker_rms", "marker_rms"),
+        ("steps", "steps"),
+        ("result", "result"),
+    ):
+        if getattr(motion, src, None) is not None:
+            _put(g, dst, np.asarray(getattr(motion, src)))
+
+
+def save_result(result: Any, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
+    """Write a :class:`jaxskel.SkeletonResult` to HDF5 (atomic; never overwrites without ``overwrite``)."""
+    from . import __version__
+
+    path = Path(path)
+    src = result.trial.source
+    if src and Path(src).exists() and Path(src).resolve() == path.resolve():
+        raise InputError(f"refusing to write the result over the input recording {path}")
+    seg = result.segmentation
+    topo = result.topology
+    with atomic_output(path, overwrite) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["jaxskel_version"] = __version__
+            f.attrs["source"] = str(result.trial.source)
+            f.attrs["rate"] = float(result.trial.rate)
+            f.attrs["units"] = "m"
+            f.attrs["up_axis"] = str(result.trial.up_axis)
+            f.attrs["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat()
+
+            g = f.create_group("markers")
+            _put(g, "labels", list(result.input_labels))
+            _put(g, "segment", result.marker_segment_input())
+            _put(g, "physical", result.physical_input())
+            _put(g, "used_labels", list(result.trial.labels))
+            _put(g, "used_segment", np.asarray(seg.marker_segment))
+            _put(g, "positions", np.asarray(result.trial.positions))
+
+            g = f.create_group("segments")
+            _put(g, "names", list(result.segment_names))
+            _put(g, "sizes", seg.segment_sizes)
+            _put(g, "eigenvalues", seg.eigenvalues)
+            _put(g, "distance_std", seg.distance_std)
+            g.attrs["eigengap_segments"] = seg.eigengap_segments
+            g.attrs["sigma"] = seg.sigma
+
+            g = f.create_group("topology")
+            _put(g, "joint_cost", topo.pair_costs.cost)
+            _put(g, "edges", topo.edges.reshape(-1, 2))
+            _put(g, "root", np.int64(topo.root))
+            _put(g, "roots", np.asarray(topo.roots, dtype=int))
+            reasons = topo.pair_costs.reasons
+            _put(g, "infeasible", np.asarray(list(reasons.keys()), dtype=int).reshape(-1, 2))
+            _put(g, "infeasible_reason", list(reasons.values()))
+
+            g = f.create_group("joints")
+            _put(g, "positions", topo.joint_positions)
+            _put(g, "cost", topo.joint_cost)
+            _put(g, "uncertainty", topo.uncertainty)
+            _put(g, "alpha", topo.alpha)
+            kmax = max((len(r) for r in topo.radii), default=0)
+            radii = np.full((len(topo.radii), kmax), np.nan)
+            for j, r in enumerate(topo.radii):
+                radii[j, : len(r)] = r
+            _put(g, "radii", radii)
+
+            if result.skeleton is not None:
+                _write_skeleton(f.create_group("skeleton"), result.skeleton)
+            if result.motion is not None:
+                _write_motion(f.create_group("motion"), result.motion)
+
+            d = f.create_group("diagnostics")
+            pc = topo.pair_costs
+            _put(d, "pairs_steps", pc.steps)
+            _put(d, "pairs_result", pc.result)
+            _put(d, "pairs_uncertainty", pc.uncertainty)
+            _put(d, "joints_steps", topo.steps)
+            _put(d, "joints_result", topo.result)
+            _put(d, "joints_converged", topo.converged)
+            _put(d, "segmentation_scores", seg.scores)
+            _put(d, "trial_bounds", np.asarray(result.trial_bounds, dtype=int).reshape(-1, 2))
+            if result.skeleton is not None and getattr(result.skeleton, "diagnostics", None):
+                d.attrs["rigid"] = json.dumps(_jsonable(result.skeleton.diagnostics))
+            for stage, seconds in result.timings.items():
+                d.attrs[f"time_{stage.replace(' ', '_')}"] = float(seconds)
+            d.attrs["settings"] = json.dumps(_jsonable(result.settings))
+            if result.cleaning is not None:
+                c = d.create_group("cleaning")
+                rep = result.cleaning
+                _put(c, "labels", list(rep.labels))
+                _put(c, "present_before", rep.present_before)
+                _put(c, "present_after", rep.present_after)
+                _put(c, "jump_samples", rep.jump_samples)
+                _put(c, "trimmed_samples", rep.trimmed_samples)
+                _put(c, "longest_run_s", rep.longest_run_s)
+                _put(c, "dropped", list(rep.dropped))
+                _put(c, "dropped_reason", list(rep.dropped.values()))
+            extra = getattr(result, "_extra_groups", None)
+            if extra:
+                for name, writer in extra.items():
+                    writer(f.create_group(name))
+    return path
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.generic,)):
+        return obj.item()
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+class ResultFile:
+    """A result file read back: groups as attributes, datasets as numpy arrays.
+
+    >>> r = jaxskel.load_result("out.h5")          # doctest: +SKIP
+    >>> r.topology.edges, r.attrs["rate"]           # doctest: +SKIP
+    """
+
+    def __init__(self, data: dict[str, Any], attrs: dict[str, Any]):
+        self._data = data
+        self.attrs = attrs
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self._data[name]
+        except KeyError:
+            raise AttributeError(
+                f"result has no {name!r}; available: {', '.join(sorted(self._data))}"
+            ) from None
+
+    def __getitem__(self, path: str) -> Any:
+        node: Any = self
+        for part in path.strip("/").split("/"):
+            node = getattr(node, part)
+        return node
+
+    def __contains__(self, path: str) -> bool:
+        try:
+            self[path]
+            return True
+        except AttributeError:
+            return False
+
+    def keys(self) -> list[str]:
+        return sorted(self._data)
+
+    def __repr__(self) -> str:
+        return f"ResultFile({', '.join(self.keys())})"
+
+
+def _read_group(g: h5py.Group) -> ResultFile:
+    data: dict[str, Any] = {}
+    for name, item in g.items():
+        if isinstance(item, h5py.Group):
+            data[name] = _read_group(item)
+        else:
+            value = item[()]
+            if item.dtype.kind == "O" or h5py.check_string_dtype(item.dtype) is not None:
+                value = np.asarray(item.asstr()[()], dtype=object)
+            data[name] = value
+    return ResultFile(data, {k: _attr(v) for k, v in g.attrs.items()})
+
+
+def _attr(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def load_result(path: str | os.PathLike[str]) -> ResultFile:
+    """Read a result file written by :meth:`SkeletonResult.save`.
+
+    Raises :class:`InputError` for a missing or non-result file and
+    :class:`SchemaError` for a file written by a newer, incompatible jaxskel.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such result file")
+    try:
+        with h5py.File(path, "r") as f:
+            if "schema_version" not in f.attrs:
+                raise InputError(f"{path}: not a jaxskel result file (no schema_version attribute)")
+            version = int(f.attrs["schema_version"])
+            if version > SCHEMA_VERSION:
+                raise SchemaError(
+                    f"{path}: written with result schema {version}, this jaxskel reads up to "
+                    f"{SCHEMA_VERSION}; upgrade jaxskel (pip install -U jaxskel)"
+                )
+            return _read_group(f)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read as HDF5 ({exc})") from None
