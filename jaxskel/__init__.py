@@ -35,6 +35,8 @@ _LAZY = {
     "Trial": "_trial",
     "bucket_size": "_padding",
     "load": "_io",
+    "load_sample": "_data",
+    "sample_path": "_data",
     "save_trial": "_io",
     # cleaning
     "clean": "_clean",

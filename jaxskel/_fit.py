@@ -193,11 +193,15 @@ class SkeletonResult:
 
     __str__ = summary
 
-    def save(self, path: str, *, overwrite: bool = False) -> None:
-        """Write the HDF5 result file (schema in the README), atomically."""
+    def save(self, path: str, *, overwrite: bool = False, extra_groups: dict[str, Any] | None = None) -> None:
+        """Write the HDF5 result file (schema in the README), atomically.
+
+        ``extra_groups`` maps group names to functions filling them (used for
+        ``/normalized`` and ``/parameters``).
+        """
         from ._result_io import save_result
 
-        save_result(self, path, overwrite=overwrite)
+        save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
 
 
 def _as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:

@@ -28,6 +28,7 @@ import datetime
 import json
 import os
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import h5py
@@ -79,8 +80,18 @@ def _write_motion(g: h5py.Group, motion: Any) -> None:
             _put(g, dst, np.asarray(getattr(motion, src)))
 
 
-def save_result(result: Any, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
-    """Write a :class:`jaxskel.SkeletonResult` to HDF5 (atomic; never overwrites without ``overwrite``)."""
+def save_result(
+    result: Any,
+    path: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    extra_groups: dict[str, Callable[[h5py.Group], None]] | None = None,
+) -> Path:
+    """Write a :class:`jaxskel.SkeletonResult` to HDF5 (atomic; never overwrites without ``overwrite``).
+
+    ``extra_groups`` maps a group name (e.g. ``"normalized"``) to a function that
+    fills that group; later stages add their output this way.
+    """
     from . import __version__
 
     path = Path(path)
@@ -166,10 +177,8 @@ def save_result(result: Any, path: str | os.PathLike[str], *, overwrite: bool = 
                 _put(c, "longest_run_s", rep.longest_run_s)
                 _put(c, "dropped", list(rep.dropped))
                 _put(c, "dropped_reason", list(rep.dropped.values()))
-            extra = getattr(result, "_extra_groups", None)
-            if extra:
-                for name, writer in extra.items():
-                    writer(f.create_group(name))
+            for name, writer in (extra_groups or {}).items():
+                writer(f.create_group(name))
     return path
 
 

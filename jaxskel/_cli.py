@@ -1,0 +1,235 @@
+"""The ``jaxskel`` command line.
+
+    jaxskel demo [-o DIR]                     fit the bundled real recording
+    jaxskel fit INPUT... -o OUT.h5 [options]  fit one subject (several trials fit together)
+    jaxskel info FILE                         describe a recording or a result file
+
+Errors the user can fix (bad file, wrong units, degenerate motion) print one
+clear line and exit with status 2; nothing the user gave is overwritten
+unless ``--overwrite`` is passed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _enable_compile_cache() -> None:
+    """Persistent JAX compilation cache, so a second process skips compilation.
+
+    Location: ``$JAXSKEL_CACHE_DIR`` or ``~/.cache/jaxskel/jax``; set
+    ``JAXSKEL_CACHE_DIR=""`` to disable.
+    """
+    cache = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
+    if not cache:
+        return
+    import jax
+
+    try:
+        Path(cache).mkdir(parents=True, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except (OSError, AttributeError):  # read-only home or an old jax: run without the cache
+        pass
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="jaxskel",
+        description="Automatic articulated skeletons from optical motion-capture markers (JAX).",
+    )
+    p.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = p.add_subparsers(dest="command")
+
+    def fit_options(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
+        sp.add_argument("--root", default=None, help="root segment index or a marker label on it")
+        sp.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto",
+                        help="merge relabelled passive markers (default: auto)")
+        sp.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
+        sp.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
+        sp.add_argument("--method", choices=["lm", "ncg"], default="lm", help="joint solver (default: lm)")
+        sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
+        sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
+        sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
+        sp.add_argument("--parameterize", action="store_true",
+                        help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
+        sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+        sp.add_argument("--seed", type=int, default=0)
+
+    fit = sub.add_parser("fit", help="fit a skeleton to one or more recordings of one subject")
+    fit.add_argument("inputs", nargs="+", type=Path, help=".c3d, .trc, .csv or .h5 recordings")
+    fit.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5)")
+    fit_options(fit)
+
+    demo = sub.add_parser("demo", help="fit the bundled real recording and write results")
+    demo.add_argument("-o", "--outdir", type=Path, default=Path("jaxskel-demo"), help="output folder")
+    demo.add_argument("--overwrite", action="store_true", default=True, help=argparse.SUPPRESS)
+    demo.add_argument("--quiet", action="store_true")
+
+    info = sub.add_parser("info", help="describe a recording or a result file")
+    info.add_argument("file", type=Path)
+    return p
+
+
+def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
+    import jaxskel
+
+    quiet = getattr(args, "quiet", False)
+    for path in inputs:
+        if output.exists() and output.resolve() == path.resolve():
+            raise jaxskel.InputError(f"the output {output} is one of the inputs; choose another name")
+    for extra in (args.plot, args.bvh, args.trc):
+        if extra is not None and extra.exists() and not args.overwrite:
+            raise jaxskel.InputError(f"{extra} exists; pass --overwrite to replace it")
+    if output.exists() and not args.overwrite:
+        raise jaxskel.InputError(f"{output} exists; pass --overwrite to replace it")
+    if output.parent and not output.parent.exists():
+        output.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    trials = [jaxskel.load(p) for p in inputs]
+    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
+    result = jaxskel.fit_skeleton(
+        trials,
+        args.segments,
+        root=_root_arg(args.root),
+        clean_data=not args.no_clean,
+        merge_labels=merge,
+        method=args.method,
+        rigid=not args.no_rigid,
+        ik=not args.no_rigid,
+        seed=args.seed,
+        progress=not quiet,
+    )
+    extra_groups = {}
+    if args.parameterize:
+        if result.motion is None:
+            raise jaxskel.InputError("--parameterize needs the rigid skeleton and IK; drop --no-rigid")
+        from ._normalize import normalize, write_normalized
+        from ._parameterize import parameterize, write_parameters
+
+        norm = normalize(result.skeleton, result.motion, up_axis=_up(result.trial.up_axis))
+        params = parameterize(result.skeleton, result.motion, norm)
+        extra_groups = {
+            "normalized": lambda g: write_normalized(g, norm),
+            "parameters": lambda g: write_parameters(g, params),
+        }
+    result.save(output, overwrite=args.overwrite, extra_groups=extra_groups)
+    written = [output]
+    if args.plot is not None:
+        from ._plots import plot_summary
+
+        plot_summary(result, args.plot, overwrite=args.overwrite)
+        written.append(args.plot)
+    if args.bvh is not None:
+        if result.motion is None:
+            raise jaxskel.InputError("--bvh needs the rigid skeleton and IK; drop --no-rigid")
+        from ._bvh import export_bvh
+
+        export_bvh(result.skeleton, result.motion, args.bvh, rate=result.trial.rate,
+                   names=result.segment_names, overwrite=args.overwrite)
+        written.append(args.bvh)
+    if args.trc is not None:
+        if result.motion is None:
+            raise jaxskel.InputError("--trc needs the rigid skeleton and IK; drop --no-rigid")
+        fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
+        jaxskel.save_trial(fitted, args.trc, overwrite=args.overwrite)
+        written.append(args.trc)
+    if not quiet:
+        print(result.summary())
+        print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _root_arg(root: str | None) -> int | str | None:
+    if root is None:
+        return None
+    return int(root) if root.lstrip("-").isdigit() else root
+
+
+def _up(axis: str) -> str:
+    return "z" if axis == "unknown" else axis
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from ._data import sample_path
+
+    outdir = args.outdir
+    outdir.mkdir(parents=True, exist_ok=True)
+    ns = argparse.Namespace(
+        segments=None, root=None, merge_labels="auto", no_clean=False, no_rigid=False, method="lm",
+        plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
+        parameterize=False, overwrite=True, quiet=args.quiet, seed=0,
+    )
+    if not args.quiet:
+        print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")
+    return _fit([sample_path()], outdir / "result.h5", ns)
+
+
+def _info(path: Path) -> int:
+    import jaxskel
+
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                is_result = "schema_version" in f.attrs
+        except OSError as exc:
+            raise jaxskel.InputError(f"{path}: cannot read as HDF5 ({exc})") from None
+        if is_result:
+            r = jaxskel.load_result(path)
+            print(f"result file {path} (schema {r.attrs['schema_version']}, jaxskel {r.attrs['jaxskel_version']})")
+            print(f"  source: {r.attrs['source']}  rate: {r.attrs['rate']} Hz")
+            print(f"  {len(r.markers.labels)} input markers, {len(r.segments.names)} segments, "
+                  f"{len(r.topology.edges)} joints, root {int(r.topology.root)}")
+            print(f"  groups: {', '.join(r.keys())}")
+            return 0
+    trial = jaxskel.load(path)
+    print(trial)
+    print(f"  labels: {', '.join(trial.labels)}")
+    present = trial.mask.mean(axis=0)
+    gappy = [lab for lab, p in zip(trial.labels, present) if p < 1]
+    print(f"  {len(gappy)} markers with gaps; metadata: {dict(trial.metadata)}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.version:
+        from . import __version__
+
+        print(f"jaxskel {__version__}")
+        return 0
+    if args.command is None:
+        _parser().print_help()
+        return 1
+    _enable_compile_cache()
+    from ._errors import JaxskelError
+
+    try:
+        if args.command == "fit":
+            return _fit(args.inputs, args.output, args)
+        if args.command == "demo":
+            return _demo(args)
+        if args.command == "info":
+            return _info(args.file)
+    except JaxskelError as exc:
+        print(f"jaxskel: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxskel: interrupted; no partial output was left behind", file=sys.stderr)
+        return 130
+    return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,69 @@
+"""Cleaning: jump rejection, gap-edge trimming, short-marker dropping, and its report."""
+
+import numpy as np
+import pytest
+
+import jaxskel
+from jaxskel import synth
+
+
+def smooth_trial(rate=120.0, seconds=6.0, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(rate * seconds)) / rate
+    base = np.stack([0.3 * np.sin(2 * np.pi * 1.3 * t), 0.3 * np.cos(2 * np.pi * 0.7 * t), 1 + 0.1 * t], -1)
+    x = base[:, None, :] + np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])[None]
+    x = x + rng.normal(0, 0.001, x.shape)
+    return x, rate
+
+
+def test_jumps_are_rejected_and_nothing_else_on_fast_smooth_motion():
+    x, rate = smooth_trial()
+    x[200:202, 1] += np.array([0.04, 0.0, 0.0])  # a 2-frame, 4 cm jump
+    x[400, 2] += np.array([0.0, 0.0, 0.05])  # a 1-frame, 5 cm jump
+    trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
+    cleaned, report = jaxskel.clean(trial, trim_s=0)
+    assert report.jump_samples.tolist() == [0, 2, 1, 0]
+    assert not cleaned.mask[200:202, 1].any() and not cleaned.mask[400, 2]
+    assert cleaned.mask.sum() == trial.mask.sum() - 3
+
+
+def test_gap_edges_trimmed_but_not_recording_ends():
+    x, rate = smooth_trial()
+    x[300:330, 0] = np.nan
+    trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
+    cleaned, report = jaxskel.clean(trial, trim_s=3 / rate, reject_jumps=False)
+    m = cleaned.mask[:, 0]
+    assert not m[297:333].any() and m[296] and m[333]
+    assert m[0] and m[-1]  # recording boundaries are not gap edges
+    assert report.trimmed_samples[0] == 6 and report.trimmed_samples[1:].sum() == 0
+
+
+def test_short_lived_and_absent_markers_dropped_with_reasons():
+    x, rate = smooth_trial()
+    x[:, 1] = np.nan
+    x[10:40, 1] = 0.5  # present for 0.25 s only
+    x[:, 3] = np.nan
+    trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
+    cleaned, report = jaxskel.clean(trial)
+    assert cleaned.labels == ("a", "c")
+    assert "0.5" in report.dropped["b"] and report.dropped["d"] == "never present"
+    assert "dropped b" in report.summary()
+    # the input trial is untouched
+    assert trial.n_markers == 4 and np.isfinite(trial.positions[10, 1]).all()
+
+
+def test_synthetic_jumps_found():
+    body = synth.full_body(seed=1)
+    trial, truth = synth.simulate(body, duration=10.0, seed=1, noise=0.001, jumps=20)
+    cleaned, report = jaxskel.clean(trial, trim_s=0)
+    jumped = truth.jumped & trial.mask
+    big = jumped & (np.linalg.norm(trial.positions - truth.clean_positions, axis=-1) > 0.03)
+    removed = trial.mask & ~cleaned.mask
+    # at least 90 % of the large jump samples are removed, and few good samples are lost
+    assert removed[big].mean() >= 0.9
+    assert removed[~jumped].mean() < 0.002
+
+
+def test_clean_rejects_non_trial():
+    with pytest.raises(jaxskel.InputError):
+        jaxskel.clean(np.zeros((3, 2, 3)))

@@ -1,0 +1,81 @@
+"""Marker segmentation (Kirk et al. §3.1) against synthetic ground truth."""
+
+import numpy as np
+import pytest
+from helpers import partition, random_rotation, true_partition
+
+import jaxskel
+from jaxskel import synth
+from jaxskel._segment import distance_std
+
+
+def test_distance_std_matches_numpy_and_masks():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(50, 4, 3))
+    mask = rng.random((50, 4)) > 0.2
+    a, n = distance_std(np.where(mask[..., None], x, 0.0), mask)
+    for i in range(4):
+        for j in range(4):
+            both = mask[:, i] & mask[:, j]
+            d = np.linalg.norm(x[both, i] - x[both, j], axis=-1)
+            assert n[i, j] == both.sum()
+            if i != j:
+                assert a[i, j] == pytest.approx(d.std(), abs=1e-12)
+
+
+def test_linkage_three_groups_by_eigengap():
+    trial, truth = synth.simulate(synth.linkage(), duration=30.0, seed=0, noise=0.001)
+    seg = jaxskel.segment_markers(trial)
+    assert seg.n_segments == 3 == seg.eigengap_segments
+    assert partition(trial.labels, seg.marker_segment) == true_partition(trial, truth)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_full_body_exact_segmentation_noise_soft_tissue_gaps(seed):
+    body = synth.full_body(seed=seed)
+    trial, truth = synth.simulate(
+        body, duration=30.0, seed=seed, noise=0.002, soft_tissue=0.003, gaps=2
+    )
+    cleaned, _ = jaxskel.clean(trial)
+    seg = jaxskel.segment_markers(cleaned)
+    n_true = len(truth.segment_names)
+    assert seg.eigengap_segments == n_true
+    keep = [trial.labels.index(lab) for lab in cleaned.labels]
+    assert partition(cleaned.labels, seg.marker_segment) == partition(
+        cleaned.labels, truth.marker_segment[keep]
+    )
+    # the spectrum shows the gap: eigenvalue n is clearly above eigenvalue n+1
+    ev = seg.eigenvalues
+    assert ev[n_true - 1] - ev[n_true] > 2 * (ev[n_true] - ev[n_true + 1])
+
+
+def test_invariant_to_rigid_motion_and_marker_order():
+    body = synth.full_body(seed=3)
+    trial, truth = synth.simulate(body, duration=20.0, seed=3, noise=0.002)
+    ref = partition(trial.labels, jaxskel.segment_markers(trial).marker_segment)
+    moved = trial.transformed(random_rotation(7), np.array([3.0, -2.0, 0.5]))
+    assert partition(moved.labels, jaxskel.segment_markers(moved).marker_segment) == ref
+    perm = np.random.default_rng(1).permutation(trial.n_markers)
+    shuffled = trial.select_markers(perm)
+    assert partition(shuffled.labels, jaxskel.segment_markers(shuffled).marker_segment) == ref
+
+
+def test_pairs_never_seen_together_are_unobserved_not_rigid():
+    trial, _ = synth.simulate(synth.linkage(), duration=20.0, seed=0, noise=0.001)
+    x = np.array(trial.positions)
+    half = trial.n_frames // 2
+    x[:half, 0] = np.nan
+    x[half:, 8] = np.nan
+    t2 = trial.replace(positions=x)
+    seg = jaxskel.segment_markers(t2, 3)
+    assert (0, 8) in seg.unobserved_pairs
+    assert np.isnan(seg.distance_std[0, 8])
+    assert seg.affinity[0, 8] < 1e-6
+
+
+def test_bad_segment_counts():
+    trial, _ = synth.simulate(synth.linkage(), duration=5.0, seed=0)
+    with pytest.raises(jaxskel.InputError, match="n_segments"):
+        jaxskel.segment_markers(trial, 0)
+    with pytest.raises(jaxskel.InputError, match="n_segments"):
+        jaxskel.segment_markers(trial, 10)
