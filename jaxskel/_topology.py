@@ -20,13 +20,16 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
 from __future__ import annotations
 
 import dataclasses
+import types
 import warnings
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
 
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._jointcost import solve_joints
+from ._jointcost_init import algebraic_start_batched
 from ._padding import bucket_size
 from ._segment import Segmentation
 from ._tree import mst_edges, root_tree
@@ -77,6 +80,7 @@ class PairCosts:
     steps: np.ndarray
     result: np.ndarray
     uncertainty: np.ndarray
+    undetermined: np.ndarray
     frames: np.ndarray
     alpha: float
     positions: dict[tuple[int, int], np.ndarray]
@@ -105,6 +109,8 @@ class Topology:
         list of (K_j,) constant marker–joint distances per joint.
     uncertainty
         (J,) metres the joint can slide along its weakest direction.
+    undetermined
+        (J,) directions the data leave free (0 determined, 1 hinge axis, 3 no motion).
     alpha
         (J,) distance prior each joint was solved with.
     steps, result, converged
@@ -120,6 +126,7 @@ class Topology:
     joint_cost: np.ndarray
     radii: tuple[np.ndarray, ...]
     uncertainty: np.ndarray
+    undetermined: np.ndarray
     alpha: np.ndarray
     steps: np.ndarray
     result: np.ndarray
@@ -144,7 +151,7 @@ def joint_costs(
     trial: Trial,
     segmentation: Segmentation,
     *,
-    alpha: float = 0.01,
+    alpha: float = 1e-4,
     max_frames: int = 300,
     method: str = "lm",
     max_steps: int = 60,
@@ -196,6 +203,7 @@ def joint_costs(
     steps = np.zeros((s, s), dtype=int)
     result = np.zeros((s, s), dtype=int)
     unc = np.full((s, s), np.inf)
+    undetermined = np.full((s, s), 3, dtype=int)
     positions: dict[tuple[int, int], np.ndarray] = {}
     radii: dict[tuple[int, int], np.ndarray] = {}
     if candidates:
@@ -207,8 +215,11 @@ def joint_costs(
         xs, ms = pair_arrays(x, mask, seg, pairs, frames, k_pad, f_pad)
         xs = np.concatenate([xs, np.zeros((p_pad - len(pairs),) + xs.shape[1:])])
         ms = np.concatenate([ms, np.zeros((p_pad - len(pairs),) + ms.shape[1:], dtype=bool)])
+        # The objective is non-convex: start from the closed-form algebraic fit, not the centroid.
+        c0, r0 = algebraic_start_batched(jnp.asarray(xs), jnp.asarray(ms))
         sol = solve_joints(
-            jnp.asarray(xs), jnp.asarray(ms), alpha=alpha, method=method, max_steps=max_steps
+            jnp.asarray(xs), jnp.asarray(ms), alpha=alpha, method=method, max_steps=max_steps,
+            c0=c0, r0=r0,
         )
         for p, (a, b) in enumerate(pairs):
             k = int(sizes[a] + sizes[b])
@@ -217,6 +228,7 @@ def joint_costs(
                 steps[u, v] = int(sol.steps[p])
                 result[u, v] = int(sol.result[p])
                 unc[u, v] = float(sol.uncertainty[p])
+                undetermined[u, v] = int(sol.undetermined_dims[p])
             positions[(a, b)] = np.asarray(sol.positions[p, : len(frames)])
             radii[(a, b)] = np.asarray(sol.radii[p, :k])
     return PairCosts(
@@ -225,11 +237,40 @@ def joint_costs(
         steps=steps,
         result=result,
         uncertainty=unc,
+        undetermined=undetermined,
         frames=frames,
         alpha=alpha,
         positions=positions,
         radii=radii,
     )
+
+
+def _solve_grouped_by_alpha(xs, ms, c0, r0, alphas, **kw) -> Any:
+    """Solve joints that share a prior weight together (the solver takes one alpha per call).
+
+    Returns the per-joint fields stacked back in the original order.
+    """
+    out: dict[str, np.ndarray] = {}
+    for a in np.unique(alphas):
+        idx = np.flatnonzero(alphas == a)
+        # Pad the joint count to a bucket (masked, empty joints) so compiled shapes are reused.
+        n_pad = bucket_size(len(idx), minimum=4, steps_per_octave=1) - len(idx)
+
+        def padded(arr: np.ndarray) -> jnp.ndarray:
+            return jnp.asarray(np.concatenate([arr[idx], np.zeros((n_pad,) + arr.shape[1:], arr.dtype)]))
+
+        sol = solve_joints(
+            padded(xs), padded(ms), alpha=float(a), c0=padded(c0), r0=padded(r0), **kw
+        )
+        for name in (
+            "positions", "radii", "cost", "steps", "result", "converged", "uncertainty",
+            "undetermined_dims", "valid_frames",
+        ):
+            value = np.asarray(getattr(sol, name))[: len(idx)]
+            if name not in out:
+                out[name] = np.zeros((len(alphas),) + value.shape[1:], dtype=value.dtype)
+            out[name][idx] = value
+    return types.SimpleNamespace(**out)
 
 
 def fit_topology(
@@ -238,9 +279,8 @@ def fit_topology(
     pair_costs: PairCosts | None = None,
     *,
     root: int | str | None = None,
-    alpha: float = 0.01,
+    alpha: float = 1e-4,
     alpha_tree: float | str = "auto",
-    poorly_determined: float = 0.01,
     method: str = "lm",
     max_steps: int = 200,
     topology_frames: int = 300,
@@ -253,9 +293,10 @@ def fit_topology(
         Root segment index, or a marker label whose segment becomes the root.
         Default: the tree's centre.
     alpha_tree
-        Distance prior of the full-frame pass: a number, or ``"auto"`` = 0 for
-        joints whose first-pass uncertainty is below ``poorly_determined``
-        metres and ``alpha`` for the others.
+        Distance prior of the full-frame pass: a number, or ``"auto"``: 0 (the
+        paper) for joints the first pass found fully determined, ``alpha`` for
+        joints with an undetermined direction (a hinge's centre slides along its
+        axis; the prior then places it nearest the markers, as the paper notes).
     """
     seg = _check_segmentation(trial, segmentation)
     s = segmentation.n_segments
@@ -284,14 +325,14 @@ def fit_topology(
         return Topology(
             edges=edges, root=roots[0], roots=tuple(roots),
             joint_positions=np.zeros((n_frames, 0, 3)), joint_cost=np.zeros(0), radii=(),
-            uncertainty=np.zeros(0), alpha=np.zeros(0), steps=np.zeros(0, int),
+            uncertainty=np.zeros(0), undetermined=np.zeros(0, int), alpha=np.zeros(0), steps=np.zeros(0, int),
             result=np.zeros(0, int), converged=np.zeros(0, bool), pair_costs=pair_costs,
         )
 
     key = [tuple(sorted((int(p), int(c)))) for p, c in edges]
-    unc1 = np.array([pair_costs.uncertainty[a, b] for a, b in key])
+    undetermined1 = np.array([pair_costs.undetermined[a, b] for a, b in key])
     if alpha_tree == "auto":
-        alphas = np.where(unc1 > poorly_determined, alpha, 0.0)
+        alphas = np.where(undetermined1 > 0, alpha, 0.0)
     else:
         alphas = np.full(j, float(alpha_tree))
     ks = np.array([int(sizes[a] + sizes[b]) for a, b in key])
@@ -308,10 +349,7 @@ def fit_topology(
         for d in range(3):
             c0[i, :n_frames, d] = np.interp(frames, t1, p1[:, d])
         r0[i, : ks[i]] = pair_costs.radii[kk]
-    sol = solve_joints(
-        jnp.asarray(xs), jnp.asarray(ms), alpha=jnp.asarray(alphas), method=method,
-        max_steps=max_steps, c0=jnp.asarray(c0), r0=jnp.asarray(r0),
-    )
+    sol = _solve_grouped_by_alpha(xs, ms, c0, r0, alphas, method=method, max_steps=max_steps)
     valid = np.asarray(sol.valid_frames)[:, :n_frames]
     pos = np.asarray(sol.positions)[:, :n_frames]
     joint_positions = np.where(valid[..., None], pos, np.nan).transpose(1, 0, 2)
@@ -331,6 +369,7 @@ def fit_topology(
         joint_cost=np.asarray(sol.cost),
         radii=tuple(np.asarray(sol.radii[i, : ks[i]]) for i in range(j)),
         uncertainty=np.asarray(sol.uncertainty),
+        undetermined=np.asarray(sol.undetermined_dims),
         alpha=alphas,
         steps=np.asarray(sol.steps),
         result=np.asarray(sol.result),
