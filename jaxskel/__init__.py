@@ -48,6 +48,7 @@ _LAZY = {
     "fit_topology": "_topology",
     "Topology": "_topology",
     "solve_joint": "_jointcost",
+    "solve_joints": "_jointcost",
     "JointSolution": "_jointcost",
     "fit_skeleton": "_fit",
     "SkeletonResult": "_fit",

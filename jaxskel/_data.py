@@ -7,11 +7,11 @@ from pathlib import Path
 
 __all__ = ["sample_path", "load_sample"]
 
-SAMPLE = "cmu_02_05.c3d"
+SAMPLE = "KneeltoProne01.c3d"
 
 
 def sample_path() -> Path:
-    """Path of the bundled sample recording (a CMU motion-capture trial)."""
+    """Path of the bundled sample recording (a labelled full-body floor-transition trial)."""
     return Path(str(resources.files("jaxskel") / "data" / SAMPLE))
 
 

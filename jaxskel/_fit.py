@@ -224,7 +224,7 @@ def fit_skeleton(
     root: int | str | None = None,
     clean_data: bool = True,
     merge_labels: bool | str = "auto",
-    alpha: float = 1e-4,
+    alpha: float = 1e-5,
     alpha_tree: float | str = "auto",
     method: str = "lm",
     topology_frames: int = 300,

@@ -19,8 +19,9 @@ the masked centring matrix and b_f the centred -|m_fk|^2. The shift of s is fixe
 by a tiny ridge; c_f then follows frame by frame and r_k = mean_f |c_f - m_fk|.
 This is the global minimiser of the algebraic residual: no local minima, one
 linear solve, and a start from which the geometric problem converges to its
-global minimum in practice. It needs >= 4 non-coplanar markers in a frame; frames
-with fewer fall back to their marker centroid.
+global minimum in practice. It needs >= 5 markers spanning 3-D in a frame (with
+4 the radii drop out of the linear system); frames with fewer fall back to their
+marker centroid, and so does a pair with no such frame.
 """
 
 from __future__ import annotations
@@ -54,19 +55,22 @@ def algebraic_start(
     # P_f = diag(w) (I - 1 w^T / n): centred selection of s on present markers.
     p = w[:, :, None] * (eye[None] - w[:, None, :] / safe_n[:, :, None])  # (F, K, K)
     utu = jnp.einsum("fki,fkj->fij", u, u)
-    # A frame needs >= 4 markers spanning 3-D; judge by the conditioning of U^T U.
+    # A frame informs s only with >= 5 markers spanning 3-D: with 4, the centred
+    # rows of U_f span exactly the centred subspace, (I - H_f) P_f = 0 and s drops out.
     ev = jnp.linalg.eigvalsh(utu)
-    good = (n[:, 0] >= 4) & (ev[:, 0] > 1e-8 * jnp.maximum(ev[:, -1], 1e-300))
+    good = (n[:, 0] >= 5) & (ev[:, 0] > 1e-8 * jnp.maximum(ev[:, -1], 1e-300))
     utu_safe = jnp.where(good[:, None, None], utu, jnp.eye(3, dtype=dtype))
     inv = jnp.linalg.inv(utu_safe)
     proj = jnp.einsum("fki,fij,flj->fkl", u, inv, u)  # H_f
     resid_op = (eye[None] - proj) * good[:, None, None]  # (I - H_f), zero for bad frames
     lhs = jnp.einsum("fki,fkl,flj->ij", p, resid_op, p)
     rhs = jnp.einsum("fki,fkl,fl->i", p, resid_op, b)
-    scale = jnp.maximum(jnp.trace(lhs) / k, 1e-300)
-    present = (jnp.sum(w, axis=0) > 0).astype(dtype)
+    any_good = jnp.any(good)
+    scale = jnp.where(any_good, jnp.trace(lhs) / k, 1.0)
+    present = (jnp.sum(w * good[:, None], axis=0) > 0).astype(dtype)
     # Ridge fixes the common shift of s and any marker never seen in a good frame.
     s = jnp.linalg.solve(lhs + 1e-9 * scale * eye + jnp.diag(1.0 - present) * scale, rhs)
+    s = jnp.where(any_good, s, 0.0)
     c = jnp.einsum("fij,fkj,fk->fi", inv, u, b - jnp.einsum("fkl,l->fk", p, s))
     c = jnp.where(good[:, None], c, centroid)
     d = jnp.sqrt(jnp.maximum(jnp.sum((c[:, None, :] - markers) ** 2, axis=-1), 1e-300))

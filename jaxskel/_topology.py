@@ -20,10 +20,9 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
 from __future__ import annotations
 
 import dataclasses
-import types
 import warnings
-from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -69,13 +68,18 @@ def pair_arrays(
 class PairCosts:
     """Result of the all-pairs pass.
 
-    ``cost`` is symmetric (S, S) with ``inf`` for infeasible pairs (see
-    ``reasons``) and on the diagonal. Solver diagnostics are per pair (S, S):
+    ``cost`` is symmetric (S, S), the MST weight, ``inf`` for infeasible pairs
+    (see ``reasons``) and on the diagonal: Kirk's Q (``weight="objective"``, the
+    default) or only its variance part (``weight="variance"``). ``objective`` is
+    always Q. Measured on real recordings, the variance alone favours pairs with a
+    single-marker segment (the joint sits on that marker at no cost), so the
+    paper's Q is the default. Solver diagnostics are per pair (S, S):
     ``steps``, ``result`` (optimistix result code, 0 = success), ``uncertainty``
     (metres, how far the joint can slide at no cost; large = poorly exercised).
     """
 
     cost: np.ndarray
+    objective: np.ndarray
     reasons: dict[tuple[int, int], str]
     steps: np.ndarray
     result: np.ndarray
@@ -151,22 +155,28 @@ def joint_costs(
     trial: Trial,
     segmentation: Segmentation,
     *,
-    alpha: float = 1e-4,
+    alpha: float = 1e-5,
     max_frames: int = 300,
     method: str = "lm",
-    max_steps: int = 60,
+    max_steps: int = 100,
     exercised_ratio: float = 1.5,
+    min_pair_markers: int = 4,
+    weight: str = "objective",
 ) -> PairCosts:
     """Approximate joint cost for every pair of segments (the topology pass).
 
     ``max_frames`` evenly spaced frames are used (the paper subsamples
     drastically here; the exact solve is for tree joints only). A pair is
-    infeasible when its segments together have < 3 markers, are seen together
-    (>= 3 markers present) in fewer than ``MIN_PAIR_FRAMES`` frames, or never
-    move relative to each other: the largest cross-segment distance std-dev is
-    below ``exercised_ratio`` times the noise floor of the segmentation.
+    infeasible when its segments together have fewer than ``min_pair_markers``
+    markers (with three, any radii fit exactly: the variance term is zero and
+    only the prior places the joint, so the cost says nothing), are seen
+    together (>= 3 markers present) in fewer than ``MIN_PAIR_FRAMES`` frames, or
+    never move relative to each other: the largest cross-segment distance std-dev
+    is below ``exercised_ratio`` times the noise floor of the segmentation.
     """
     seg = _check_segmentation(trial, segmentation)
+    if weight not in ("objective", "variance"):
+        raise InputError(f"weight must be 'objective' or 'variance', got {weight!r}")
     s = segmentation.n_segments
     if s < 2:
         raise DegenerateMotionError("only one segment: there is no joint to fit")
@@ -182,11 +192,15 @@ def joint_costs(
     for a in range(s):
         for b in range(a + 1, s):
             ia, ib = np.flatnonzero(seg == a), np.flatnonzero(seg == b)
-            if len(ia) + len(ib) < 3:
-                reasons[(a, b)] = f"segments {a} and {b} have {len(ia) + len(ib)} markers in total; a joint needs >= 3"
+            if len(ia) + len(ib) < min_pair_markers:
+                reasons[(a, b)] = (
+                    f"segments {a} and {b} have {len(ia) + len(ib)} markers in total; a joint needs >= "
+                    f"{min_pair_markers} (with 3, any marker-joint distances fit exactly and only the prior "
+                    "places the joint)"
+                )
                 continue
             both = mask[:, np.concatenate([ia, ib])]
-            usable = (both.sum(1) >= 3) & both[:, : len(ia)].any(1) & both[:, len(ia) :].any(1)
+            usable = (both.sum(1) >= min(3, min_pair_markers)) & both[:, : len(ia)].any(1) & both[:, len(ia) :].any(1)
             if usable.sum() < MIN_PAIR_FRAMES:
                 reasons[(a, b)] = f"segments {a} and {b} are seen together in only {int(usable.sum())} frames"
                 continue
@@ -200,6 +214,7 @@ def joint_costs(
             candidates.append((a, b))
 
     cost = np.full((s, s), np.inf)
+    objective = np.full((s, s), np.inf)
     steps = np.zeros((s, s), dtype=int)
     result = np.zeros((s, s), dtype=int)
     unc = np.full((s, s), np.inf)
@@ -221,10 +236,13 @@ def joint_costs(
             jnp.asarray(xs), jnp.asarray(ms), alpha=alpha, method=method, max_steps=max_steps,
             c0=c0, r0=r0,
         )
+        sol = jax.tree_util.tree_map(np.asarray, sol)
         for p, (a, b) in enumerate(pairs):
             k = int(sizes[a] + sizes[b])
+            pair_variance = float(sol.variance[p])
             for u, v in ((a, b), (b, a)):
-                cost[u, v] = float(sol.cost[p])
+                cost[u, v] = pair_variance if weight == "variance" else float(sol.cost[p])
+                objective[u, v] = float(sol.cost[p])
                 steps[u, v] = int(sol.steps[p])
                 result[u, v] = int(sol.result[p])
                 unc[u, v] = float(sol.uncertainty[p])
@@ -233,6 +251,7 @@ def joint_costs(
             radii[(a, b)] = np.asarray(sol.radii[p, :k])
     return PairCosts(
         cost=cost,
+        objective=objective,
         reasons=reasons,
         steps=steps,
         result=result,
@@ -245,41 +264,13 @@ def joint_costs(
     )
 
 
-def _solve_grouped_by_alpha(xs, ms, c0, r0, alphas, **kw) -> Any:
-    """Solve joints that share a prior weight together (the solver takes one alpha per call).
-
-    Returns the per-joint fields stacked back in the original order.
-    """
-    out: dict[str, np.ndarray] = {}
-    for a in np.unique(alphas):
-        idx = np.flatnonzero(alphas == a)
-        # Pad the joint count to a bucket (masked, empty joints) so compiled shapes are reused.
-        n_pad = bucket_size(len(idx), minimum=4, steps_per_octave=1) - len(idx)
-
-        def padded(arr: np.ndarray) -> jnp.ndarray:
-            return jnp.asarray(np.concatenate([arr[idx], np.zeros((n_pad,) + arr.shape[1:], arr.dtype)]))
-
-        sol = solve_joints(
-            padded(xs), padded(ms), alpha=float(a), c0=padded(c0), r0=padded(r0), **kw
-        )
-        for name in (
-            "positions", "radii", "cost", "steps", "result", "converged", "uncertainty",
-            "undetermined_dims", "valid_frames",
-        ):
-            value = np.asarray(getattr(sol, name))[: len(idx)]
-            if name not in out:
-                out[name] = np.zeros((len(alphas),) + value.shape[1:], dtype=value.dtype)
-            out[name][idx] = value
-    return types.SimpleNamespace(**out)
-
-
 def fit_topology(
     trial: Trial,
     segmentation: Segmentation,
     pair_costs: PairCosts | None = None,
     *,
     root: int | str | None = None,
-    alpha: float = 1e-4,
+    alpha: float = 1e-5,
     alpha_tree: float | str = "auto",
     method: str = "lm",
     max_steps: int = 200,
@@ -349,7 +340,17 @@ def fit_topology(
         for d in range(3):
             c0[i, :n_frames, d] = np.interp(frames, t1, p1[:, d])
         r0[i, : ks[i]] = pair_costs.radii[kk]
-    sol = _solve_grouped_by_alpha(xs, ms, c0, r0, alphas, method=method, max_steps=max_steps)
+    # Pad the joint count to a bucket (masked, empty joints) so compiled shapes are reused.
+    j_pad = bucket_size(j, minimum=4, steps_per_octave=1)
+
+    def padded(arr: np.ndarray) -> jnp.ndarray:
+        return jnp.asarray(np.concatenate([arr, np.zeros((j_pad - j,) + arr.shape[1:], arr.dtype)]))
+
+    sol = solve_joints(
+        padded(xs), padded(ms), alpha=padded(alphas), method=method, max_steps=max_steps,
+        c0=padded(c0), r0=padded(r0),
+    )
+    sol = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[:j], sol)
     valid = np.asarray(sol.valid_frames)[:, :n_frames]
     pos = np.asarray(sol.positions)[:, :n_frames]
     joint_positions = np.where(valid[..., None], pos, np.nan).transpose(1, 0, 2)

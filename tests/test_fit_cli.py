@@ -1,0 +1,108 @@
+"""fit_skeleton end to end: result object, HDF5 result file, command line, errors."""
+
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxskel
+from jaxskel import synth
+from jaxskel._cli import main
+
+
+@pytest.fixture(scope="module")
+def linkage_trial():
+    trial, truth = synth.simulate(synth.linkage(), duration=15.0, seed=5, noise=0.001, gaps=1)
+    return trial, truth
+
+
+@pytest.fixture(scope="module")
+def fitted(linkage_trial):
+    trial, _ = linkage_trial
+    return jaxskel.fit_skeleton(trial)
+
+
+def test_result_holds_every_stage(fitted, linkage_trial):
+    trial, truth = linkage_trial
+    r = fitted
+    assert r.cleaning is not None and r.segmentation.n_segments == 3
+    assert r.topology.edges.shape == (2, 2) and r.joint_positions.shape == (trial.n_frames, 2, 3)
+    assert set(r.timings) >= {"clean", "segment", "joint costs", "tree joints"}
+    assert r.topology.converged.all() and (r.topology.steps > 0).all()
+    text = r.summary()
+    assert "3 segments, 2 joints" in text and "bone lengths" in text
+
+
+def test_result_file_schema_roundtrip(fitted, tmp_path):
+    path = tmp_path / "out.h5"
+    fitted.save(path)
+    with pytest.raises(jaxskel.InputError, match="exists"):
+        fitted.save(path)
+    back = jaxskel.load_result(path)
+    assert back.attrs["schema_version"] == 1 and back.attrs["units"] == "m"
+    assert list(back.markers.labels) == list(fitted.input_labels)
+    np.testing.assert_array_equal(back.topology.edges, fitted.edges)
+    np.testing.assert_allclose(back.joints.positions, fitted.joint_positions, equal_nan=True)
+    assert back.topology.joint_cost.shape == (3, 3) and np.isinf(back.topology.joint_cost[0, 0])
+    assert int(back.topology.root) == fitted.topology.root
+    assert (back.markers.segment >= 0).all() and back.markers.physical.tolist() == list(range(9))
+    assert "joints_steps" in back.diagnostics.keys()
+    # a reader of a newer schema refuses with a clear message
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(jaxskel.SchemaError, match="upgrade"):
+        jaxskel.load_result(path)
+
+
+def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, capsys):
+    trial, _ = linkage_trial
+    src = tmp_path / "link.c3d"
+    trial.save(src)
+    out = tmp_path / "res.h5"
+    fig = tmp_path / "fig.png"
+    assert main(["fit", str(src), "-o", str(out), "--plot", str(fig), "--quiet", "--no-rigid"]) == 0
+    assert out.is_file() and fig.stat().st_size > 10_000
+    assert main(["fit", str(src), "-o", str(out), "--quiet", "--no-rigid"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["fit", str(src), "-o", str(src), "--quiet", "--overwrite"]) == 2
+    assert jaxskel.load(src).n_markers == trial.n_markers  # the input survived
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    bad = tmp_path / "broken.c3d"
+    bad.write_bytes(b"not a c3d file at all")
+    assert main(["fit", str(bad), "-o", str(tmp_path / "x.h5"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxskel: error:") and "broken.c3d" in err and "Traceback" not in err
+
+
+def test_wrong_units_are_caught(linkage_trial):
+    trial, _ = linkage_trial
+    in_mm = trial.replace(positions=trial.positions * 1000)
+    with pytest.raises(jaxskel.InputError, match="millimetres"):
+        jaxskel.fit_skeleton(in_mm)
+
+
+def test_too_few_markers_and_bad_arguments(linkage_trial):
+    trial, _ = linkage_trial
+    with pytest.raises(jaxskel.DegenerateMotionError, match="at least 3"):
+        jaxskel.fit_skeleton(trial.select_markers([0, 1]))
+    with pytest.raises(jaxskel.InputError):
+        jaxskel.fit_skeleton("walk.c3d")
+    with pytest.raises(jaxskel.InputError, match="merge_labels"):
+        jaxskel.fit_skeleton(trial, merge_labels="sometimes")
+
+
+def test_two_trials_fit_together(linkage_trial):
+    trial, truth = linkage_trial
+    a, b = trial[: trial.n_frames // 2], trial[trial.n_frames // 2 :]
+    r = jaxskel.fit_skeleton([a, b], rigid=False, ik=False)
+    assert r.trial_bounds == ((0, a.n_frames), (a.n_frames, trial.n_frames))
+    assert r.n_segments == 3 and len(r.edges) == 2
+
+
+def test_console_script_version():
+    out = subprocess.run([sys.executable, "-m", "jaxskel._cli", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.startswith("jaxskel ")
