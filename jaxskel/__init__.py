@@ -31,6 +31,7 @@ _LAZY = {
     "SchemaError": "_errors",
     "ConvergenceWarning": "_errors",
     "UnitsWarning": "_errors",
+    "DegenerateMotionWarning": "_errors",
     # data model and I/O
     "Trial": "_trial",
     "bucket_size": "_padding",
@@ -63,11 +64,23 @@ _LAZY = {
     # passive-marker correspondence
     "merge_labels": "_relabel",
     "LabelMapping": "_relabel",
+    "needs_merging": "_relabel",
     # Sar Dessai et al. 2006
     "normalize": "_normalize",
     "Normalization": "_normalize",
     "parameterize": "_parameterize",
     "Parameterization": "_parameterize",
+    "Pose": "_parameterize",
+    "normalize_arrays": "_normalize",
+    "parameterize_arrays": "_parameterize",
+    "plot_joint_spheres": "_plots_params",
+    "plot_speed_histograms": "_plots_params",
+    "plot_angles": "_plots_params",
+    "plot_summary": "_plots",
+    "plot_distance_std": "_plots",
+    "plot_joint_costs": "_plots",
+    "plot_skeleton_3d": "_plots",
+    "plot_residuals": "_plots",
     # many trials
     "fit_batch": "_batch",
 }

@@ -135,7 +135,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         from ._bvh import export_bvh
 
         export_bvh(result.skeleton, result.motion, args.bvh, rate=result.trial.rate,
-                   names=result.segment_names, overwrite=args.overwrite)
+                   labels=result.segment_names, overwrite=args.overwrite)
         written.append(args.bvh)
     if args.trc is not None:
         if result.motion is None:

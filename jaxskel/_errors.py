@@ -13,6 +13,7 @@ __all__ = [
     "SchemaError",
     "ConvergenceWarning",
     "UnitsWarning",
+    "DegenerateMotionWarning",
 ]
 
 
@@ -42,3 +43,8 @@ class ConvergenceWarning(UserWarning):
 
 class UnitsWarning(UserWarning):
     """A file did not state its units and an assumption was made."""
+
+
+class DegenerateMotionWarning(UserWarning):
+    """Part of the motion carries too little information (e.g. a joint that barely moves);
+    the affected result is reported but should not be trusted."""

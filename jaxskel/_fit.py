@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from ._clean import CleaningReport, clean
-from ._errors import DegenerateMotionError, InputError
+from ._relabel import needs_merging
+from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._topology import Topology, fit_topology, joint_costs
 from ._trial import Trial
@@ -160,10 +161,11 @@ class SkeletonResult:
         return out
 
     def _bone_name(self, j0: int, j1: int) -> str:
+        """``"seg1 (seg0-seg2)"``: segment seg1 between its joints with seg0 and seg2."""
         names = self.segment_names
-        (p0, c0), (p1, c1) = self.edges[j0], self.edges[j1]
-        shared = ({int(p0), int(c0)} & {int(p1), int(c1)}).pop()
-        return f"{names[shared]}[{self.joint_name(j0)}-{self.joint_name(j1)}]"
+        e0, e1 = {int(v) for v in self.edges[j0]}, {int(v) for v in self.edges[j1]}
+        shared = (e0 & e1).pop()
+        return f"{names[shared]} ({names[(e0 - {shared}).pop()]}-{names[(e1 - {shared}).pop()]})"
 
     def joint_name(self, j: int) -> str:
         p, c = self.edges[j]
@@ -250,8 +252,12 @@ def fit_skeleton(
     clean_data
         Run :func:`jaxskel.clean` first (recommended for raw data).
     merge_labels
-        Merge relabelled passive markers: ``True``, ``False``, or ``"auto"``: merge
-        when there are more labels than the most markers seen in any one frame.
+        Merge relabelled passive markers (:func:`jaxskel.merge_labels`): ``True``,
+        ``False``, or ``"auto"``: merge when there are more labels than the most
+        markers seen in any one frame *and* the recording has unnamed (``*N``)
+        trajectories. A named recording with occlusions also has more labels than
+        markers per frame; merging it by default would risk joining distinct
+        markers, so it only gets a warning.
     alpha, alpha_tree, method, topology_frames
         Joint solve settings (see :func:`jaxskel.joint_costs`, :func:`jaxskel.fit_topology`).
     rigid, ik
@@ -267,6 +273,7 @@ def fit_skeleton(
     combined = combine_trials(trials)
     bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
     input_labels = combined.labels
+    work = combined
     timings: dict[str, float] = {}
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
@@ -281,26 +288,41 @@ def fit_skeleton(
             bar.set_postfix_str(name)
             bar.update(1)
 
-    t0 = time.perf_counter()
-    report = None
-    work = combined
-    if clean_data:
-        work, report = clean(work, **(clean_kwargs or {}))
-    tick("clean", t0)
-
-    t0 = time.perf_counter()
-    mapping = None
-    most_in_frame = int(work.mask.sum(axis=1).max()) if work.n_frames else 0
+    # Decide on label merging from the raw data: cleaning's short-run rule would
+    # otherwise drop the short relabelled fragments before they can be merged.
     if merge_labels == "auto":
-        do_merge = work.n_markers > most_in_frame
+        do_merge = needs_merging(work) and any(lab.startswith("*") for lab in work.labels)
+        if needs_merging(work) and not do_merge:
+            warnings.warn(
+                "this recording has more labels than markers in any frame, but its labels are named, "
+                "so labels were not merged; pass merge_labels=True (CLI: --merge-labels yes) if it "
+                "comes from a passive system that relabels markers after occlusions",
+                DegenerateMotionWarning,
+                stacklevel=2,
+            )
     elif isinstance(merge_labels, bool):
         do_merge = merge_labels
     else:
         raise InputError(f"merge_labels must be True, False or 'auto', got {merge_labels!r}")
+    clean_options = dict(clean_kwargs or {})
+    min_run_s = clean_options.pop("min_run_s", 0.5)
+
+    t0 = time.perf_counter()
+    report = None
+    if clean_data:
+        work, report = clean(work, min_run_s=0.0 if do_merge else min_run_s, **clean_options)
+    tick("clean", t0)
+
+    t0 = time.perf_counter()
+    mapping = None
     if do_merge:
         from ._relabel import merge_labels as _merge
 
         work, mapping = _merge(work)
+        if clean_data:
+            # Now that fragments are joined, drop physical markers that are still short-lived.
+            work, after = clean(work, trim_s=0.0, reject_jumps=False, min_run_s=min_run_s)
+            report = dataclasses.replace(report, dropped={**report.dropped, **after.dropped})
     tick("merge labels", t0)
 
     if work.n_markers < 3:

@@ -1,0 +1,183 @@
+"""BVH export and reader, checked against the independent `bvh` package and by forward kinematics.
+
+The skeleton and motion are built directly from synthetic ground truth (no solver), so
+these tests isolate the file format.
+"""
+
+from __future__ import annotations
+
+import bvh
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxskel import InputError, synth
+from jaxskel._bvh import export_bvh, read_bvh
+from jaxskel._ik import Motion
+from jaxskel._rigid import Skeleton
+
+
+def _truth_skeleton_and_motion(body, duration=1.0, seed=0):
+    trial, truth = synth.simulate(body, "calibration", duration=duration, seed=seed)
+    n_seg = len(truth.segment_names)
+    skeleton = Skeleton(
+        n_segments=n_seg,
+        edges=truth.edges,
+        root=truth.root,
+        marker_labels=trial.labels,
+        marker_segment=truth.marker_segment,
+        marker_offsets=truth.marker_offsets,
+        joint_offsets=truth.joint_offsets,
+        bones=truth.bones,
+        bone_lengths=truth.bone_lengths,
+        bone_segment=truth.bone_segment,
+        segment_lengths=np.full(n_seg, np.nan),
+        marker_rms=np.zeros(trial.n_markers),
+        nonrigid_markers=(),
+        diagnostics={},
+    )
+    quats = Rotation.from_matrix(truth.segment_rotations.reshape(-1, 3, 3)).as_quat(scalar_first=True)
+    motion = Motion(
+        root_position=truth.segment_translations[:, truth.root],
+        rotations=quats.reshape(trial.n_frames, n_seg, 4),
+        segment_translations=truth.segment_translations,
+        joint_positions=truth.joint_positions,
+        fitted_markers=truth.clean_positions,
+        marker_rms=np.zeros(trial.n_frames),
+        segment_observed=np.ones((trial.n_frames, n_seg), bool),
+        steps=np.zeros(trial.n_frames, int),
+        result=np.zeros(trial.n_frames, int),
+        converged=True,
+        marker_labels=trial.labels,
+        rate=trial.rate,
+    )
+    return skeleton, motion, truth
+
+
+@pytest.fixture(scope="module")
+def full_body():
+    return _truth_skeleton_and_motion(synth.full_body(seed=0))
+
+
+def _proximal(skeleton):
+    prox = np.full(skeleton.n_segments, -1)
+    prox[skeleton.edges[:, 1]] = np.arange(skeleton.n_joints)
+    return prox
+
+
+def _check_round_trip(skeleton, motion, names, data, scale):
+    world = data.world_positions() / scale
+    assert data.n_frames == motion.n_frames
+    prox = _proximal(skeleton)
+    for s, name in enumerate(names):
+        node = data.names.index(name)
+        if s == skeleton.root:
+            np.testing.assert_allclose(world[:, node], motion.root_position, atol=1e-6)
+        else:
+            np.testing.assert_allclose(world[:, node], motion.joint_positions[:, prox[s]], atol=1e-6)
+
+
+def test_round_trip_positions_and_independent_parser(tmp_path, full_body):
+    skeleton, motion, truth = full_body
+    names = truth.segment_names
+    path = export_bvh(skeleton, motion, tmp_path / "body.bvh", labels=names)
+    data = read_bvh(path)
+    _check_round_trip(skeleton, motion, names, data, 1.0)
+    # Hierarchy: parents follow the tree, leaves (and only leaves) end in an End Site.
+    for s, name in enumerate(names):
+        node = data.names.index(name)
+        parent = data.parents[node]
+        expected = skeleton.parent[s]
+        assert (parent == -1) if expected < 0 else (data.names[parent] == names[expected])
+        assert np.isfinite(data.end_sites[node]).all() == (s not in skeleton.edges[:, 0])
+
+    with open(path) as handle:
+        other = bvh.Bvh(handle.read())
+    assert other.get_joints_names() == list(data.names)
+    assert other.nframes == motion.n_frames
+    assert other.frame_time == pytest.approx(1.0 / 120.0)
+    root = names[skeleton.root]
+    assert other.joint_channels(root) == [
+        "Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation",
+    ]
+    for name in names:
+        if name != root:
+            assert other.joint_channels(name) == ["Zrotation", "Xrotation", "Yrotation"]
+        np.testing.assert_allclose(other.joint_offset(name), data.offsets[data.names.index(name)], atol=1e-9)
+    assert sum(other.get_joint_channels_index(n) >= 0 for n in other.get_joints_names()) == len(names)
+    # Both parsers read the same channel values.
+    start = np.cumsum([0] + [len(c) for c in data.channels])
+    for node, name in enumerate(data.names):
+        chans = list(data.channels[node])
+        np.testing.assert_allclose(
+            other.frame_joint_channels(5, name, chans), data.frames[5, start[node] : start[node + 1]]
+        )
+
+
+def test_offsets_are_the_rest_pose_bones(tmp_path, full_body):
+    skeleton, motion, truth = full_body
+    names = truth.segment_names
+    data = read_bvh(export_bvh(skeleton, motion, tmp_path / "rest.bvh", labels=names))
+    for j, (p, c) in enumerate(skeleton.edges):
+        node = data.names.index(names[c])
+        # Full-body segment origins sit at their proximal joints: OFFSET = joint in parent frame.
+        np.testing.assert_allclose(data.offsets[node], skeleton.joint_offsets[j, 0], atol=1e-9)
+    np.testing.assert_array_equal(data.offsets[data.names.index(names[skeleton.root])], 0.0)
+
+
+def test_centimetres_and_other_rotation_order_on_a_random_tree(tmp_path):
+    skeleton, motion, truth = _truth_skeleton_and_motion(synth.random_tree(8, seed=5), seed=5)
+    names = [f"part {i}" for i in range(skeleton.n_segments)]  # spaces are not BVH-safe
+    path = export_bvh(
+        skeleton, motion, tmp_path / "tree.bvh", units="cm", rotation_order="XYZ", labels=names
+    )
+    data = read_bvh(path)
+    safe = [n.replace(" ", "_") for n in names]
+    assert set(data.names) == set(safe)
+    assert data.channels[1] == ("Xrotation", "Yrotation", "Zrotation")
+    _check_round_trip(skeleton, motion, safe, data, 100.0)
+    metres = read_bvh(export_bvh(skeleton, motion, tmp_path / "tree_m.bvh", labels=names))
+    np.testing.assert_allclose(data.offsets, 100.0 * metres.offsets, atol=1e-6)
+
+
+def test_write_is_atomic_and_refuses_to_overwrite(tmp_path, full_body):
+    skeleton, motion, _ = full_body
+    path = tmp_path / "a.bvh"
+    path.write_text("keep me")
+    with pytest.raises(InputError, match="exists"):
+        export_bvh(skeleton, motion, path)
+    assert path.read_text() == "keep me"
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left behind
+    export_bvh(skeleton, motion, path, overwrite=True)
+    assert read_bvh(path).n_frames == motion.n_frames
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"units": "mm"}, "units"),
+        ({"rotation_order": "XXY"}, "permutation"),
+        ({"labels": ["a"] * 15}, "distinct"),
+        ({"rate": -1.0}, "rate"),
+    ],
+)
+def test_export_rejects_bad_arguments(tmp_path, full_body, kwargs, message):
+    skeleton, motion, _ = full_body
+    with pytest.raises(InputError, match=message):
+        export_bvh(skeleton, motion, tmp_path / "x.bvh", **kwargs)
+    assert not (tmp_path / "x.bvh").exists()
+
+
+def test_reader_rejects_malformed_files(tmp_path, full_body):
+    skeleton, motion, _ = full_body
+    good = export_bvh(skeleton, motion, tmp_path / "good.bvh").read_text()
+    cases = {
+        "no_motion.bvh": good.split("MOTION")[0],
+        "truncated.bvh": good[: good.index("MOTION") - 40] + good[good.index("MOTION") :],
+        "short_rows.bvh": good.rsplit("\n", 2)[0] + "\n",
+        "not_bvh.bvh": "hello world",
+    }
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError):
+            read_bvh(tmp_path / name)

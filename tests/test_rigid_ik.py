@@ -1,0 +1,356 @@
+"""Rigid skeleton (Kirk et al. §3.3) and inverse kinematics against synthetic ground truth.
+
+One fit per seed is shared by the accuracy tests (module-scoped fixture): a full body,
+calibration motion, 2 mm marker noise plus 3 mm soft-tissue artefact, with the true joint
+centres (plus 2 mm noise, standing in for the joint solver) as input.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import random_rotation
+from scipy.spatial.transform import Rotation
+
+from jaxskel import ConvergenceWarning, DegenerateMotionError, InputError, synth
+from jaxskel import _ik as ik_module
+from jaxskel._geometry import horn_align, matrix_to_quat
+from jaxskel._ik import (
+    forward_kinematics,
+    ik_solve,
+    inverse_kinematics,
+    kinematic_chain,
+)
+from jaxskel._rigid import Skeleton, fit_rigid
+
+NOISE = 0.002
+SOFT = 0.003
+DURATION = 10.0  # 1200 frames at 120 Hz
+FIT_FRAMES = 300
+
+
+def _fit(seed: int, trial=None, truth=None):
+    if trial is None:
+        body = synth.full_body(seed=seed)
+        trial, truth = synth.simulate(
+            body, "calibration", duration=DURATION, seed=seed, noise=NOISE, soft_tissue=SOFT
+        )
+    # The joint solver's output, simulated: true centres plus 2 mm noise.
+    joints = truth.joint_positions + np.random.default_rng(seed).normal(0.0, 0.002, truth.joint_positions.shape)
+    skeleton = fit_rigid(trial, truth.marker_segment, truth.edges, joints, max_frames=FIT_FRAMES)
+    return trial, truth, joints, skeleton
+
+
+def _fit_and_ik(seed: int):
+    trial, truth, joints, skeleton = _fit(seed)
+    return trial, truth, joints, skeleton, inverse_kinematics(skeleton, trial)
+
+
+@pytest.fixture(scope="module")
+def seed0():
+    return _fit_and_ik(0)
+
+
+@pytest.fixture(scope="module")
+def seed1():
+    return _fit_and_ik(1)
+
+
+@pytest.fixture(params=["seed0", "seed1"])
+def fitted(request):
+    """Accuracy tests run on two subjects; the other tests on the first."""
+    return request.getfixturevalue(request.param)
+
+
+def _segment_points(offsets_m, offsets_j, marker_segment, edges, s):
+    """Markers and joints of segment s in its frame (joint rows: parent side or child side)."""
+    pts = [offsets_m[marker_segment == s]]
+    pts += [offsets_j[j, 0][None] for j in np.flatnonzero(edges[:, 0] == s)]
+    pts += [offsets_j[j, 1][None] for j in np.flatnonzero(edges[:, 1] == s)]
+    return np.concatenate(pts)
+
+
+# ------------------------------------------------------------------ rigid fit
+def test_marker_offsets_match_truth_up_to_the_segment_frame(fitted):
+    trial, truth, _, sk, _ = fitted
+    assert np.array_equal(sk.edges, truth.edges) and sk.root == truth.root
+    worst = 0.0
+    for s in range(sk.n_segments):
+        ours = _segment_points(sk.marker_offsets, sk.joint_offsets, sk.marker_segment, sk.edges, s)
+        true = _segment_points(truth.marker_offsets, truth.joint_offsets, truth.marker_segment, truth.edges, s)
+        # Frames differ by a rigid motion (our axes are world-aligned at the rest frame).
+        rot, t = horn_align(jnp.asarray(ours), jnp.asarray(true))
+        err = np.linalg.norm(ours @ np.asarray(rot).T + np.asarray(t) - true, axis=1)
+        worst = max(worst, err.max())
+    assert worst < 0.003
+
+
+def test_marker_to_joint_distances_match_truth(fitted):
+    _, truth, _, sk, _ = fitted
+    for j, (p, c) in enumerate(sk.edges):
+        for side, s in ((0, p), (1, c)):
+            on = np.flatnonzero(sk.marker_segment == s)
+            ours = np.linalg.norm(sk.marker_offsets[on] - sk.joint_offsets[j, side], axis=1)
+            true = np.linalg.norm(truth.marker_offsets[on] - truth.joint_offsets[j, side], axis=1)
+            np.testing.assert_allclose(ours, true, atol=0.003)
+
+
+def test_bone_lengths_within_half_percent(fitted):
+    _, truth, _, sk, _ = fitted
+    true = {tuple(sorted(b)): length for b, length in zip(truth.bones.tolist(), truth.bone_lengths)}
+    ours = {tuple(sorted(b)): length for b, length in zip(sk.bones.tolist(), sk.bone_lengths)}
+    assert ours.keys() == true.keys()
+    rel = np.array([abs(ours[k] - true[k]) / true[k] for k in true])
+    assert rel.max() < 0.005
+    # Segment length: the longest bone of the segment.
+    for s, length in enumerate(sk.segment_lengths):
+        on = sk.bone_segment == s
+        if on.any():
+            assert length == pytest.approx(sk.bone_lengths[on].max())
+        else:
+            assert np.isnan(length)
+
+
+def test_residuals_at_noise_level_and_no_false_flags(fitted):
+    trial, truth, _, sk, _ = fitted
+    # What the skeleton cannot explain: noise plus soft tissue, per marker.
+    present = trial.mask
+    dev = np.linalg.norm(trial.positions - truth.clean_positions, axis=-1)
+    actual = np.sqrt(np.nanmean(np.where(present, dev, np.nan) ** 2, axis=0))
+    ratio = sk.marker_rms / actual
+    # The fit absorbs part of the perturbation (3 + 3S pose unknowns per frame) but no more.
+    assert 0.6 < np.median(ratio) < 1.05
+    assert sk.nonrigid_markers == ()
+    d = sk.diagnostics
+    assert d["result"] == 0 and d["ik_failures"] == 0 and 1 <= d["sweeps"] < 30
+    assert d["cost_history"] == sorted(d["cost_history"], reverse=True)  # never increases
+    assert d["residual_rms"] == pytest.approx(np.sqrt(np.mean(actual**2)), rel=0.3)
+
+
+def test_loose_marker_is_flagged():
+    body = synth.full_body(seed=2)
+    trial, truth = synth.simulate(body, "calibration", duration=DURATION, seed=2, noise=NOISE)
+    pos = trial.positions.copy()
+    loose = trial.labels.index("LTHF")
+    # The marker slides 2.5 cm back and forth on the skin, independently of the bone.
+    pos[:, loose, 2] += 0.025 * np.sin(2 * np.pi * 0.7 * trial.times)
+    _, _, _, sk = _fit(2, trial.replace(positions=pos), truth)
+    assert sk.nonrigid_markers == ("LTHF",)
+    assert sk.marker_rms[loose] > 3 * np.nanmedian(sk.marker_rms)
+
+
+def test_fit_is_invariant_to_a_rigid_motion_of_the_data(seed0):
+    trial, truth, joints, sk, _ = seed0
+    rot = random_rotation(7)
+    shift = np.array([0.4, -1.0, 0.25])
+    moved = fit_rigid(
+        trial.transformed(rot, shift), truth.marker_segment, truth.edges, joints @ rot.T + shift,
+        max_frames=FIT_FRAMES,
+    )
+    np.testing.assert_allclose(moved.bone_lengths, sk.bone_lengths, atol=1e-7)
+    np.testing.assert_allclose(moved.marker_rms, sk.marker_rms, atol=1e-7)
+    # Offsets live in rest frames aligned with the world axes, so they turn with the data.
+    np.testing.assert_allclose(moved.marker_offsets, sk.marker_offsets @ rot.T, atol=1e-6)
+    assert moved.diagnostics["rest_frame"] == sk.diagnostics["rest_frame"]
+
+
+def test_fit_rigid_rejects_bad_input(seed0):
+    trial, truth, _, _, _ = seed0
+    jp = truth.joint_positions
+    with pytest.raises(InputError, match="marker_segment"):
+        fit_rigid(trial, truth.marker_segment[:-1], truth.edges, jp)
+    with pytest.raises(InputError, match="joint_positions"):
+        fit_rigid(trial, truth.marker_segment, truth.edges, jp[:, :-1])
+    cyclic = truth.edges.copy()
+    cyclic[-1] = (cyclic[-1, 1], cyclic[0, 1])
+    with pytest.raises(InputError, match="tree"):
+        fit_rigid(trial, truth.marker_segment, cyclic, jp)
+    no_hand = truth.marker_segment.copy()
+    hand = truth.segment_names.index("l_hand")
+    no_hand[no_hand == hand] = -1
+    with pytest.raises(DegenerateMotionError, match="no markers"):
+        fit_rigid(trial, no_hand, truth.edges, jp)
+
+
+# ------------------------------------------------------------------ kinematics
+def test_forward_kinematics_reproduces_the_simulator():
+    body = synth.random_tree(9, seed=3)
+    _, truth = synth.simulate(body, "calibration", duration=0.5, seed=3)
+    q = matrix_to_quat(jnp.asarray(truth.segment_rotations))
+    trans, joints, markers = forward_kinematics(
+        jnp.asarray(truth.segment_translations[:, truth.root]), q, jnp.asarray(truth.joint_offsets),
+        jnp.asarray(truth.marker_offsets), jnp.asarray(truth.edges), jnp.asarray(truth.marker_segment),
+    )
+    np.testing.assert_allclose(trans, truth.segment_translations, atol=1e-12)
+    np.testing.assert_allclose(joints, truth.joint_positions, atol=1e-12)
+    np.testing.assert_allclose(markers, truth.clean_positions, atol=1e-12)
+    chain = kinematic_chain(jnp.asarray(truth.edges))
+    assert set(np.unique(np.asarray(chain.path))) <= {0.0, 1.0}
+
+
+# ------------------------------------------------------------------------ IK
+def test_ik_fits_markers_to_noise_level_and_finds_the_joints(fitted):
+    trial, truth, _, sk, motion = fitted
+    assert motion.converged and (motion.result == 0).all()
+    assert motion.rotations.shape == (trial.n_frames, sk.n_segments, 4)
+    np.testing.assert_allclose(np.linalg.norm(motion.rotations, axis=-1), 1.0, atol=1e-12)
+    # Per-frame residual close to the skeleton's fitting residual (same noise).
+    assert np.median(motion.marker_rms) == pytest.approx(sk.diagnostics["residual_rms"], rel=0.1)
+    joint_err = np.linalg.norm(motion.joint_positions - truth.joint_positions, axis=-1)
+    assert np.median(joint_err) < 0.005 and joint_err.max() < 0.02
+    # Joint positions are consistent with segment poses (the tree constraint).
+    j = 3
+    p, c = sk.edges[j]
+    r_parent = Rotation.from_quat(motion.rotations[:, p], scalar_first=True).as_matrix()
+    via_parent = np.einsum("fab,b->fa", r_parent, sk.joint_offsets[j, 0]) + motion.segment_translations[:, p]
+    np.testing.assert_allclose(via_parent, motion.joint_positions[:, j], atol=1e-9)
+    np.testing.assert_allclose(motion.segment_translations[:, c], motion.joint_positions[:, j], atol=1e-9)
+
+
+def test_single_marker_gaps_are_reconstructed(seed0):
+    trial, truth, _, sk, _ = seed0
+    rng = np.random.default_rng(11)
+    pos = trial.positions.copy()
+    gap = np.zeros(trial.mask.shape, bool)
+    one_second = int(trial.rate)
+    for m in rng.choice(trial.n_markers, 12, replace=False):
+        start = rng.integers(0, trial.n_frames - one_second)
+        gap[start : start + one_second, m] = True
+    pos[gap] = np.nan
+    motion = inverse_kinematics(sk, trial.replace(positions=pos))
+    err = np.linalg.norm(motion.fitted_markers - truth.clean_positions, axis=-1)
+    for m in np.flatnonzero(gap.any(axis=0)):
+        assert np.sqrt(np.mean(err[gap[:, m], m] ** 2)) < 0.010
+    assert np.isfinite(motion.fitted_markers).all()
+
+
+def test_whole_segment_gap_is_interpolated(seed0):
+    trial, truth, _, sk, _ = seed0
+    foot = truth.segment_names.index("r_foot")
+    pos = trial.positions.copy()
+    gap = np.zeros(trial.mask.shape, bool)
+    gap[500:620, truth.marker_segment == foot] = True
+    pos[gap] = np.nan
+    filled = inverse_kinematics(sk, trial.replace(positions=pos))
+    held = inverse_kinematics(sk, trial.replace(positions=pos), fill_gaps=False)
+    assert not filled.segment_observed[500:620, foot].any() and filled.segment_observed[:500, foot].all()
+    err_filled = np.linalg.norm(filled.fitted_markers - truth.clean_positions, axis=-1)[gap]
+    err_held = np.linalg.norm(held.fitted_markers - truth.clean_positions, axis=-1)[gap]
+    # Slerp between the gap's ends beats falling back to the rest-pose relative rotation.
+    assert err_filled.max() < 0.7 * err_held.max()
+    # No jump into or out of the gap: the frame-to-frame displacement of the foot markers
+    # at both ends matches the true one up to noise.
+    on_foot = truth.marker_segment == foot
+    for f in (499, 619):
+        step = filled.fitted_markers[f + 1, on_foot] - filled.fitted_markers[f, on_foot]
+        true_step = truth.clean_positions[f + 1, on_foot] - truth.clean_positions[f, on_foot]
+        assert np.linalg.norm(step - true_step, axis=-1).max() < 0.01
+
+
+def test_ik_is_equivariant_and_ignores_marker_order(seed0):
+    trial, _, _, sk, motion = seed0
+    rot = random_rotation(5)
+    shift = np.array([1.0, 2.0, -0.5])
+    moved = inverse_kinematics(sk, trial.transformed(rot, shift))
+    np.testing.assert_allclose(moved.joint_positions, motion.joint_positions @ rot.T + shift, atol=1e-6)
+    np.testing.assert_allclose(moved.marker_rms, motion.marker_rms, atol=1e-8)
+    order = np.random.default_rng(3).permutation(trial.n_markers)
+    shuffled = inverse_kinematics(sk, trial.select_markers(order))
+    np.testing.assert_allclose(shuffled.joint_positions, motion.joint_positions, atol=1e-9)
+    assert shuffled.marker_labels == sk.marker_labels
+
+
+def test_ik_batches_over_a_leading_trial_axis(seed0):
+    trial, _, _, sk, motion = seed0
+    x = trial.select_markers(list(sk.marker_labels)).positions
+    half = x.shape[0] // 2
+    both = inverse_kinematics(sk, np.stack([x[:half], x[half : 2 * half]]), rate=trial.rate)
+    assert both.joint_positions.shape == (2, half, sk.n_joints, 3)
+    # Frames are solved independently (no gaps here), so each half matches the whole-trial fit.
+    np.testing.assert_allclose(both.joint_positions[0], motion.joint_positions[:half], atol=1e-8)
+    np.testing.assert_allclose(both.joint_positions[1], motion.joint_positions[half : 2 * half], atol=1e-8)
+    fitted_trial = motion.fitted_trial()
+    assert fitted_trial.n_frames == trial.n_frames and fitted_trial.labels == sk.marker_labels
+    np.testing.assert_array_equal(fitted_trial.positions, motion.fitted_markers)
+
+
+def test_frames_in_a_wrong_basin_are_solved_again(monkeypatch):
+    # Two markers per segment, posed on the true skeleton: some frames' Horn start folds
+    # a limb the wrong way and the per-frame solve settles there.
+    body = synth.full_body(seed=0, markers_per_segment=2)
+    trial, truth = synth.simulate(body, "calibration", duration=DURATION, seed=0, noise=0.001)
+    n_seg = len(truth.segment_names)
+    skeleton = Skeleton(
+        n_segments=n_seg, edges=truth.edges, root=truth.root, marker_labels=trial.labels,
+        marker_segment=truth.marker_segment, marker_offsets=truth.marker_offsets,
+        joint_offsets=truth.joint_offsets, bones=truth.bones, bone_lengths=truth.bone_lengths,
+        bone_segment=truth.bone_segment, segment_lengths=np.full(n_seg, np.nan),
+        marker_rms=np.zeros(trial.n_markers), nonrigid_markers=(), diagnostics={},
+    )
+
+    def worst_joint_error():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)  # wrong basins are also slow ones
+            motion = inverse_kinematics(skeleton, trial)
+        return np.linalg.norm(motion.joint_positions - truth.joint_positions, axis=-1).max()
+
+    monkeypatch.setattr(ik_module, "RESEED_FACTOR", np.inf)
+    assert worst_joint_error() > 0.05  # without re-solving, limbs are folded in some frames
+    monkeypatch.undo()
+    assert worst_joint_error() < 0.01
+
+
+def test_ik_warm_start_from_a_previous_motion(seed0):
+    trial, _, _, sk, motion = seed0
+    again = inverse_kinematics(sk, trial, init=motion)
+    # Same optimum up to the stopping tolerance (micrometres, in weakly determined twists).
+    np.testing.assert_allclose(again.joint_positions, motion.joint_positions, atol=1e-5)
+    assert again.steps.mean() < motion.steps.mean()
+
+
+def test_ik_rejects_wrong_markers(seed0):
+    trial, _, _, sk, _ = seed0
+    with pytest.raises(InputError, match="lacks"):
+        inverse_kinematics(sk, trial.drop_markers(["LASI"]))
+    with pytest.raises(InputError, match="markers"):
+        inverse_kinematics(sk, trial.positions[:, :-1])
+
+
+def test_ik_gradients_match_finite_differences():
+    body = synth.full_body(seed=4)
+    trial, truth = synth.simulate(body, "calibration", duration=0.2, seed=4, noise=NOISE)
+    x, mask = trial.to_arrays()
+    f = 7
+    xs, ms = jnp.asarray(x[f]), jnp.asarray(mask[f])
+    edges, seg = jnp.asarray(truth.edges), jnp.asarray(truth.marker_segment)
+    q_start = matrix_to_quat(jnp.asarray(truth.segment_rotations[f + 3]))  # a nearby pose
+    t_start = jnp.asarray(truth.segment_translations[f + 3, truth.root])
+    weights = jnp.asarray(np.random.default_rng(0).normal(size=(truth.edges.shape[0], 3)))
+
+    def objective(xs, joint_offsets, marker_offsets):
+        sol = ik_solve(xs, ms, joint_offsets, marker_offsets, edges, seg, t_start, q_start, prior_weight=0.01)
+        _, joints, _ = forward_kinematics(sol.root_position, sol.rotations, joint_offsets, marker_offsets, edges, seg)
+        return jnp.sum(weights * joints)
+
+    args = (xs, jnp.asarray(truth.joint_offsets), jnp.asarray(truth.marker_offsets))
+    value_and_grad = jax.jit(jax.value_and_grad(objective, argnums=(0, 1, 2)))
+    value, grads = value_and_grad(*args)
+    assert np.isfinite(value)
+    rng = np.random.default_rng(1)
+    eps = 1e-5
+    for k in range(3):
+        direction = rng.normal(size=args[k].shape)
+        if k == 0:
+            direction = direction * np.asarray(mask[f])[:, None]  # hidden markers do not count
+        plus = list(args)
+        minus = list(args)
+        plus[k] = args[k] + eps * direction
+        minus[k] = args[k] - eps * direction
+        fd = (value_and_grad(*plus)[0] - value_and_grad(*minus)[0]) / (2 * eps)
+        assert float(jnp.sum(grads[k] * direction)) == pytest.approx(float(fd), rel=1e-4, abs=1e-7)
+    # A hidden marker has no influence.
+    assert np.abs(np.asarray(grads[0])[~np.asarray(mask[f])]).max(initial=0.0) == 0.0
