@@ -17,17 +17,6 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-# XLA's multi-threaded Eigen pool on CPU can wedge for good on vmapped while-loops
-# (measured here: the joint solve hung in BlockUntilReady with every worker idle, in
-# 2 of ~10 cold runs; the same is reported upstream, e.g. PyAutoFit issue #1530).
-# Single-threaded Eigen costs ~15 % on CPU and never hung. XLA reads the flag when
-# the backend starts, so this works unless a computation already ran.
-# JAXSKEL_EIGEN_THREADS=1 keeps XLA's default.
-if not os.environ.get("JAXSKEL_EIGEN_THREADS") and "xla_cpu_multi_thread_eigen" not in os.environ.get(
-    "XLA_FLAGS", ""
-):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
-
 if not os.environ.get("JAXSKEL_NO_X64"):
     import jax
 

@@ -38,6 +38,8 @@ __all__ = ["PairCosts", "Topology", "joint_costs", "fit_topology", "pair_arrays"
 
 #: Below this many frames with >= 3 of a pair's markers present, a pair is infeasible.
 MIN_PAIR_FRAMES = 10
+#: Segment pairs solved per vmapped call in the all-pairs pass.
+PAIR_CHUNK = 64
 
 
 def pair_arrays(
@@ -226,17 +228,28 @@ def joint_costs(
         kmax = max(int(sizes[a] + sizes[b]) for a, b in candidates)
         k_pad = bucket_size(kmax, minimum=4, steps_per_octave=1)
         f_pad = bucket_size(len(frames))
-        p_pad = bucket_size(len(pairs), minimum=8)
         xs, ms = pair_arrays(x, mask, seg, pairs, frames, k_pad, f_pad)
-        xs = np.concatenate([xs, np.zeros((p_pad - len(pairs),) + xs.shape[1:])])
-        ms = np.concatenate([ms, np.zeros((p_pad - len(pairs),) + ms.shape[1:], dtype=bool)])
-        # The objective is non-convex: start from the closed-form algebraic fit, not the centroid.
+        # The closed-form start: the objective is non-convex, the centroid is a poor start.
         c0, r0 = algebraic_start_batched(jnp.asarray(xs), jnp.asarray(ms))
-        sol = solve_joints(
-            jnp.asarray(xs), jnp.asarray(ms), alpha=alpha, method=method, max_steps=max_steps,
-            c0=c0, r0=r0,
-        )
-        sol = jax.tree_util.tree_map(np.asarray, sol)
+        c0, r0 = np.asarray(c0), np.asarray(r0)
+        # Solve in fixed-size chunks of pairs (padded with empty pairs): one compiled
+        # shape for any segment count, and XLA's CPU runtime was measured to hang for
+        # good on a single vmapped solve over >= ~128 pairs (92 were fine).
+        chunks = []
+        for start in range(0, len(pairs), PAIR_CHUNK):
+            stop = min(start + PAIR_CHUNK, len(pairs))
+
+            def chunk(arr: np.ndarray) -> jnp.ndarray:
+                part = arr[start:stop]
+                pad = np.zeros((PAIR_CHUNK - len(part),) + part.shape[1:], part.dtype)
+                return jnp.asarray(np.concatenate([part, pad]))
+
+            out = solve_joints(
+                chunk(xs), chunk(ms), alpha=alpha, method=method, max_steps=max_steps,
+                c0=chunk(c0), r0=chunk(r0),
+            )
+            chunks.append(jax.tree_util.tree_map(lambda leaf, n=stop - start: np.asarray(leaf)[:n], out))
+        sol = jax.tree_util.tree_map(lambda *leaves: np.concatenate(leaves), *chunks)
         for p, (a, b) in enumerate(pairs):
             k = int(sizes[a] + sizes[b])
             pair_variance = float(sol.variance[p])
