@@ -106,3 +106,17 @@ def test_two_trials_fit_together(linkage_trial):
 def test_console_script_version():
     out = subprocess.run([sys.executable, "-m", "jaxskel._cli", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.startswith("jaxskel ")
+
+
+def test_cli_parameterize_writes_normalized_and_parameters(tmp_path):
+    trial, _ = synth.simulate(synth.full_body(seed=1), duration=10.0, seed=1, noise=0.001)
+    src = tmp_path / "body.c3d"
+    trial.save(src)
+    out = tmp_path / "body.h5"
+    assert main(["fit", str(src), "-o", str(out), "--parameterize", "--quiet"]) == 0
+    back = jaxskel.load_result(out)
+    n_segments = len(back.segments.names)
+    assert back.normalized.limb_frames.shape == (trial.n_frames, n_segments, 3, 3)
+    assert 0 <= int(back.normalized.default_frame) < trial.n_frames
+    assert back.parameters.angles.shape[0] == trial.n_frames
+    assert np.isfinite(back.parameters.axes).any()
