@@ -23,6 +23,7 @@ import numpy as np
 from ._clean import CleaningReport, clean
 from ._relabel import needs_merging
 from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
+from ._io import _median_extent
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._topology import Topology, fit_topology, joint_costs
 from ._trial import Trial
@@ -34,28 +35,24 @@ def check_units(trial: Trial) -> None:
     """Raise :class:`InputError` when positions are clearly not in metres.
 
     A human or a lab linkage spans centimetres to a few metres per frame. The
-    median over frames of the largest marker distance from the frame's centroid
-    must lie in [1 cm, 20 m]; outside it the data are almost surely millimetres
-    read as metres (or similar).
+    median over frames of the body's span (the same measure the file readers use
+    to guess missing units, :func:`jaxskel._io._median_extent`) must lie in
+    [2 cm, 40 m]; outside it the data are almost surely millimetres read as
+    metres (or similar).
     """
-    x = trial.positions
-    with warnings.catch_warnings():
-        # Frames with no marker give all-NaN slices; they are skipped by the medians.
-        warnings.simplefilter("ignore", RuntimeWarning)
-        centroid = np.nanmean(x, axis=1, keepdims=True)
-        spread = np.nanmax(np.linalg.norm(x - centroid, axis=-1), axis=1)
-        extent = float(np.nanmedian(spread))
-    if not np.isfinite(extent):
-        raise InputError(f"{trial.source or 'trial'}: no frame has any marker present")
-    if extent > 20.0:
+    extent = _median_extent(np.asarray(trial.positions))
+    name = trial.source or "trial"
+    if extent is None:
+        raise InputError(f"{name}: no frame has two markers present; there is nothing to fit")
+    if extent > 40.0:
         raise InputError(
-            f"{trial.source or 'trial'}: markers spread {extent:.0f} units from their centroid; positions "
-            "look like millimetres, not metres. Load files with jaxskel.load (it converts units) or divide by 1000."
+            f"{name}: the markers span {extent:.0f} units; positions look like millimetres, not metres. "
+            "Load files with jaxskel.load (it converts units) or divide by 1000."
         )
-    if extent < 0.01:
+    if extent < 0.02:
         raise InputError(
-            f"{trial.source or 'trial'}: markers spread only {extent:.2g} units from their centroid; positions "
-            "do not look like metres (kilometres?). Convert to metres first."
+            f"{name}: the markers span only {extent:.2g} units; positions do not look like metres "
+            "(kilometres?). Convert to metres first."
         )
 
 
