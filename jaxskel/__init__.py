@@ -68,6 +68,7 @@ _LAZY = {
     "merge_labels": "_relabel",
     "LabelMapping": "_relabel",
     "needs_merging": "_relabel",
+    "confirm_merges": "_relabel_confirm",
     # Sar Dessai et al. 2006
     "normalize": "_normalize",
     "Normalization": "_normalize",

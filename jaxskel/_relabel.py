@@ -157,6 +157,11 @@ class LabelMapping:
     link_confidence
         (L,) ``r / (r + c)`` in [0, 1]: c the merge's cost in the assignment and
         r its regret, how much the optimal total cost rises without it.
+    link_confirmed
+        (L,) only after :func:`jaxskel.confirm_merges` (else ``None``): True where
+        the marker-only assignment had made the merge too, False where the
+        fitted skeleton corrected it. ``link_error`` then holds the skeleton's
+        prediction error of the merge instead of the neighbours' one.
 
     diagnostics
         Read-only mapping: counts (fragments, sampled frames, candidate pairs),
@@ -181,6 +186,7 @@ class LabelMapping:
     link_error: Float[np.ndarray, " L"]
     link_confidence: Float[np.ndarray, " L"]
     diagnostics: Mapping[str, Any]
+    link_confirmed: Bool[np.ndarray, " L"] | None = None
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
@@ -527,10 +533,7 @@ def _finish(
     physical = np.where(chain >= 0, renumber[np.maximum(chain, 0)], -1)
     physical_labels = tuple(str(names[c]) for c in rank)
 
-    merged = np.full((trial.n_frames, n_chains, 3), np.nan, dtype=trial.positions.dtype)
-    frame = np.arange(trial.n_frames)[:, None]
-    frames, frag = np.nonzero((frame >= frags.start) & (frame < frags.stop) & (physical >= 0))
-    merged[frames, physical[frag]] = trial.positions[frames, frags.label[frag]]
+    merged = merged_positions(trial, frags, physical, n_chains)
 
     # A fragment is as sure as its least sure merge; a dropped one as its drop.
     link_from = np.flatnonzero(chains.successor >= 0)
@@ -575,6 +578,17 @@ def _finish(
         diagnostics=diagnostics,
     )
     return merged_trial, mapping
+
+
+def merged_positions(
+    trial: Trial, frags: Fragments, physical: Int[np.ndarray, " K"], n_physical: int
+) -> Float[np.ndarray, "F P 3"]:
+    """Positions with one column per physical marker, from its fragments (NaN elsewhere)."""
+    merged = np.full((trial.n_frames, n_physical, 3), np.nan, dtype=trial.positions.dtype)
+    frame = np.arange(trial.n_frames)[:, None]
+    frames, frag = np.nonzero((frame >= frags.start) & (frame < frags.stop) & (physical >= 0))
+    merged[frames, physical[frag]] = trial.positions[frames, frags.label[frag]]
+    return merged
 
 
 def _check_arguments(
