@@ -177,27 +177,20 @@ def accuracy_table(seeds: list[int], noise_deg: float) -> dict:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="2,400 frames and one accuracy seed")
-    ap.add_argument("--frames", type=int, default=24000)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--json", type=Path, help="also write the results here")
-    args = ap.parse_args()
-    n_frames = 2400 if args.quick else args.frames
-    seeds = [1] if args.quick else [1, 2, 3, 4, 5, 6]
-
+def measure(n_frames: int = 24000, seeds: list[int] | None = None, repeats: int = 5) -> dict:
+    """Timings, agreement with the numpy reference and axis accuracy (module docstring)."""
+    seeds = [1, 2, 3, 4, 5, 6] if seeds is None else seeds
     x, edges, quats = paper_skeleton(n_frames)
     yardstick = np.random.default_rng(0).normal(size=(1000, 1000))
     start = time.perf_counter()
     yardstick @ yardstick
     matmul_s = time.perf_counter() - start
 
-    n_first, n_warm, n_cpu, norm = timed(lambda: normalize_arrays(x, edges, quats), args.repeats)
-    p_first, p_warm, p_cpu, param = timed(lambda: parameterize_normalized(norm), args.repeats)
-    m_first, m_warm, m_cpu, _ = timed(lambda: parameterize_normalized(norm, method="pca"), args.repeats)
-    e_first, e_warm, e_cpu, _ = timed(lambda: parameterize_normalized(norm, method="em"), args.repeats)
-    r_first, r_warm, r_cpu, pose = timed(lambda: param.pose(), args.repeats)
+    n_first, n_warm, n_cpu, norm = timed(lambda: normalize_arrays(x, edges, quats), repeats)
+    p_first, p_warm, p_cpu, param = timed(lambda: parameterize_normalized(norm), repeats)
+    m_first, m_warm, m_cpu, _ = timed(lambda: parameterize_normalized(norm, method="pca"), repeats)
+    e_first, e_warm, e_cpu, _ = timed(lambda: parameterize_normalized(norm, method="em"), repeats)
+    r_first, r_warm, r_cpu, pose = timed(lambda: param.pose(), repeats)
 
     start = time.perf_counter()
     ref_frame, ref_cost, _ = reference_normalization(x, edges, quats)
@@ -246,8 +239,32 @@ def main() -> None:
             "two_axis_residual_mean_deg": float(np.degrees(param.residual[:, two].mean())),
         },
         "accuracy_noise_0.3deg": accuracy_table(seeds, 0.3),
+        "seeds": seeds,
+        "two_axis_joints": len(two),
     }
-    print(f"{n_frames} frames, {edges.shape[0]} joints, {edges.shape[0] + 1} limbs; {results['machine']}")
+    return results
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="2,400 frames and one accuracy seed")
+    ap.add_argument("--frames", type=int, default=24000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", type=Path, help="also write the results here")
+    args = ap.parse_args()
+    n_frames = 2400 if args.quick else args.frames
+    results = measure(n_frames, [1] if args.quick else None, args.repeats)
+    edges_n, seeds = results["joints"], results["seeds"]
+    matmul_s = results["numpy_matmul_1000_s"]
+    n_warm, n_cpu, n_first = (results["normalize"][k] for k in ("warm_s", "warm_cpu_s", "first_s"))
+    ref_norm_s = results["normalize"]["numpy_reference_s"]
+    p_warm, p_cpu, p_first = (results["parameterize_joining"][k] for k in ("warm_s", "warm_cpu_s", "first_s"))
+    m_warm, m_cpu, m_first = (results["parameterize_pca"][k] for k in ("warm_s", "warm_cpu_s", "first_s"))
+    e_warm, e_cpu, e_first = (results["parameterize_em"][k] for k in ("warm_s", "warm_cpu_s", "first_s"))
+    r_warm, r_cpu, r_first = (results["pose_from_angles"][k] for k in ("warm_s", "warm_cpu_s", "first_s"))
+    ref_angles_s = results["angles_numpy_reference_s"]
+    two = range(results["two_axis_joints"])
+    print(f"{n_frames} frames, {edges_n} joints, {edges_n + 1} limbs; {results['machine']}")
     print(f"(1000x1000 numpy matmul: {matmul_s:.3f} s; an idle 2-core machine takes ~0.03-0.05 s)")
     print(f"{'stage':24}{'warm s':>9}{'warm cpu s':>12}{'first s':>9}{'numpy ref s':>13}{'paper s':>9}")
     print(f"{'normalize':24}{n_warm:9.3f}{n_cpu:12.3f}{n_first:9.2f}{ref_norm_s:13.3f}{0.955:9.3f}")

@@ -62,17 +62,8 @@ def numpy_coarse_distance(xs: "np.ndarray", ms: "np.ndarray", min_common: int) -
     return np.minimum(best, best.T)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--quick", action="store_true", help="8 s recording")
-    parser.add_argument("--cores", type=int, default=2)
-    parser.add_argument("--json", help="write the figures to this file")
-    args = parser.parse_args()
-    _pin(args.cores)
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
-
+def measure(duration: float = 30.0) -> dict:
+    """Figures of one run (see the module docstring) on a ``duration`` s relabelled walk."""
     import numpy as np
     from scipy.optimize import linear_sum_assignment
 
@@ -81,7 +72,6 @@ def main() -> None:
     from jaxskel._relabel_fragments import fragment_arrays, split_fragments
     from jaxskel._relabel_search import sampled_distance
 
-    duration = 8.0 if args.quick else 30.0
     body = synth.full_body(seed=0)
     trial, truth = synth.simulate(
         body, motion="walk", duration=duration, rate=120.0, seed=0, noise=0.001,
@@ -124,7 +114,7 @@ def main() -> None:
     finite = np.isfinite(d_np) & apart
     agreement = float(np.abs(d_jax[finite] - d_np[finite]).max())
 
-    figures = {
+    return {
         "recording_s": duration,
         "rate_hz": trial.rate,
         "labels": trial.n_markers,
@@ -132,7 +122,6 @@ def main() -> None:
         "physical_true": body.n_markers,
         "physical_found": mapping.n_physical,
         "accuracy": float(accuracy),
-        "cores": args.cores,
         "merge_cold_s": cold,
         "merge_warm_s": warm,
         "coarse_jax_s": coarse_jax,
@@ -144,6 +133,19 @@ def main() -> None:
         "passes": mapping.diagnostics["passes"],
         **{f"stage_{k}_s": v for k, v in mapping.diagnostics["seconds"].items()},
     }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="8 s recording")
+    parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--json", help="write the figures to this file")
+    args = parser.parse_args()
+    _pin(args.cores)
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    figures = {**measure(8.0 if args.quick else 30.0), "cores": args.cores}
     width = max(map(len, figures))
     for key, value in figures.items():
         print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
