@@ -7,6 +7,13 @@ The flat public API lives here; the implementation is in small private modules
 jaxskel enables JAX's 64-bit mode on import (joint fitting needs float64 accuracy;
 arrays passed as float32 still compute in float32). Set ``JAXSKEL_NO_X64=1`` before
 importing to leave JAX's global setting alone.
+
+jaxskel also runs XLA's CPU backend with single-threaded Eigen
+(``--xla_cpu_multi_thread_eigen=false`` in ``XLA_FLAGS``) unless ``XLA_FLAGS``
+already says otherwise or ``JAXSKEL_XLA_MULTI_THREAD=1``: with the multi-threaded
+Eigen pool, vmapped while-loop solves (the joint costs) were seen to wedge for
+good on 2-core machines under load -- every worker parked, the result never
+ready. This only takes effect if no JAX computation ran before ``import jaxskel``.
 """
 
 from __future__ import annotations
@@ -16,6 +23,11 @@ import os
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+if not os.environ.get("JAXSKEL_XLA_MULTI_THREAD") and "xla_cpu_multi_thread_eigen" not in os.environ.get(
+    "XLA_FLAGS", ""
+):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
 
 if not os.environ.get("JAXSKEL_NO_X64"):
     import jax
