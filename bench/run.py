@@ -48,8 +48,35 @@ def _selected(spec: dict, only: set[str] | None) -> bool:
     return any(EXPERIMENTS[name] == spec["kind"] for name in only if name in EXPERIMENTS)
 
 
-def run_case(spec: dict, only: set[str] | None, timeout: float | None) -> dict:
-    """Run one case in a new process; the record, or one with ``error`` if it failed."""
+def _tree_cpu_ticks(root_pid: int) -> int | None:
+    """CPU clock ticks (user + system) used so far by a process and its live descendants (Linux)."""
+    stats = {}
+    for entry in os.listdir("/proc") if os.path.isdir("/proc") else ():
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(entry)] = (int(fields[1]), int(fields[11]) + int(fields[12]))  # ppid, utime + stime
+    if root_pid not in stats:
+        return None
+    total, todo = 0, [root_pid]
+    while todo:
+        pid = todo.pop()
+        total += stats[pid][1]
+        todo += [child for child, (ppid, _) in stats.items() if ppid == pid]
+    return total
+
+
+def run_case(spec: dict, only: set[str] | None, timeout: float | None, hang_s: float = 900.0) -> dict:
+    """Run one case in a new process; the record, or one with ``error`` if it failed.
+
+    A case whose process tree uses under 2 % of a core for ``hang_s`` seconds is
+    killed as hung (XLA's CPU runtime has been seen to wedge for good, every worker
+    parked; the memory sampler thread alone uses well under that).
+    """
+    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
     with tempfile.TemporaryDirectory(prefix="bench-case-") as tmp:
         case_path, out_path = Path(tmp) / "case.json", Path(tmp) / "out.json"
         case_path.write_text(json.dumps(spec))
@@ -60,29 +87,41 @@ def run_case(spec: dict, only: set[str] | None, timeout: float | None) -> dict:
         log = Path(tmp) / "log.txt"
         start = time.perf_counter()
         with open(log, "w") as fh:
-            proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=fh, stderr=subprocess.STDOUT)
+            proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
             try:
                 # wait4 gives this child's own peak RSS (ru_maxrss, KB on Linux)
                 deadline = None if timeout is None else start + timeout
+                why = None
+                last_ticks, last_check = 0, start
+                last_change = start
                 while True:
                     pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
                     if pid:
                         break
-                    if deadline is not None and time.perf_counter() > deadline:
-                        proc.kill()
+                    now = time.perf_counter()
+                    if now - last_check > 10.0:
+                        ticks = _tree_cpu_ticks(proc.pid)
+                        if ticks is not None and ticks - last_ticks > 0.02 * hz * (now - last_check):
+                            last_change = now
+                        last_ticks, last_check = ticks or last_ticks, now
+                        if now - last_change > hang_s:
+                            why = f"hung: under 2 % of a core for {hang_s:.0f} s, killed"
+                    if deadline is not None and now > deadline:
+                        why = f"killed after {timeout:.0f} s (timeout)"
+                    if why:
+                        os.killpg(proc.pid, 9)  # the case's whole process group (it may have children)
                         pid, status, usage = os.wait4(proc.pid, 0)
                         break
                     time.sleep(0.2)
                 proc.returncode = os.waitstatus_to_exitcode(status)
             except KeyboardInterrupt:
-                proc.kill()
+                os.killpg(proc.pid, 9)
                 raise
         wall = time.perf_counter() - start
         if proc.returncode == 0 and out_path.exists():
             record = json.loads(out_path.read_text())
         else:
-            why = f"killed after {timeout:.0f} s (timeout)" if deadline is not None and time.perf_counter() > deadline else f"exit {proc.returncode}"
-            record = {"case": spec, "error": f"{why}: " + log.read_text()[-2000:]}
+            record = {"case": spec, "error": f"{why or f'exit {proc.returncode}'}: " + log.read_text()[-2000:]}
         record["process"] = {"wall_s": wall, "peak_rss_mb": round(usage.ru_maxrss / 1024.0, 1)}
         return record
 
