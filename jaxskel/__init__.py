@@ -99,6 +99,16 @@ _LAZY = {
     "plot_residuals": "_plots",
     # many trials
     "fit_batch": "_batch",
+    "BatchResult": "_batch",
+    "TrialOutcome": "_batch",
+    "bone_length": "_batch_io",
+    "plot_bone_lengths": "_batch_io",
+    # learning-pipeline API (pure, jit/vmap/grad-able)
+    "SkeletonStructure": "_functional",
+    "RigidFit": "_functional",
+    "joint_cost_fn": "_functional",
+    "rigid_fit_fn": "_functional",
+    "ik_fn": "_functional",
 }
 
 __all__ = sorted([*_LAZY, "synth", "__version__"])

@@ -3,6 +3,8 @@
     jaxskel demo [-o DIR]                     fit the bundled real recording
     jaxskel fit INPUT... -o OUT.h5 [options]  fit one subject (several trials fit together)
     jaxskel info FILE                         describe a recording or a result file
+    jaxskel fit-batch DIR -o OUTDIR [options] fit every recording in a folder (resumable;
+                                              --scheduler ADDRESS / --workers N: Dask)
 
 Errors the user can fix (bad file, wrong units, degenerate motion) print one
 clear line and exit with status 2; nothing the user gave is overwritten
@@ -74,6 +76,34 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("-o", "--outdir", type=Path, default=Path("jaxskel-demo"), help="output folder")
     demo.add_argument("--overwrite", action="store_true", default=True, help=argparse.SUPPRESS)
     demo.add_argument("--quiet", action="store_true")
+
+    batch = sub.add_parser(
+        "fit-batch", help="fit every recording in a folder (batched, resumable; optional Dask cluster)",
+        description="Fit a skeleton to every recording under DIR: one result file per recording in OUTDIR "
+        "(sub-folders kept), a summary table OUTDIR/summary.csv, finished recordings skipped on a rerun.",
+    )
+    batch.add_argument("directory", type=Path, help="folder of .c3d/.trc/.csv/.h5 recordings (searched recursively)")
+    batch.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
+    batch.add_argument("--scheduler", default=None,
+                       help="Dask scheduler address (tcp://host:8786): fit on the cluster's workers")
+    batch.add_argument("--workers", type=int, default=None,
+                       help="start a local Dask cluster with this many worker processes (one per core)")
+    batch.add_argument("--batch-size", type=int, default=8, help="most trials solved together (default 8)")
+    batch.add_argument("--jobs", type=int, default=2, help="threads for reading/cleaning/writing (default 2)")
+    batch.add_argument("--bone", action="append", default=[], metavar="NAME=A,S,B[;A,S,B]",
+                       help="tabulate a bone by marker labels: on the segment of S, between its joints with the "
+                       "segments of A and B; ';' averages several (repeatable)")
+    batch.add_argument("--plot-bones", type=Path, default=None,
+                       help="plot the first two --bone lengths per subject (Kirk et al. 2005, Fig. 5)")
+    batch.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
+    batch.add_argument("--root", default=None, help="root segment index or a marker label on it")
+    batch.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto")
+    batch.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
+    batch.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
+    batch.add_argument("--method", choices=["lm", "ncg"], default="lm")
+    batch.add_argument("--seed", type=int, default=0)
+    batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
+    batch.add_argument("--quiet", action="store_true", help="no progress bar")
 
     info = sub.add_parser("info", help="describe a recording or a result file")
     info.add_argument("file", type=Path)
@@ -149,6 +179,54 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit_batch(args: argparse.Namespace) -> int:
+    import jaxskel
+
+    from ._batch_io import parse_bone_spec
+
+    if not args.directory.is_dir():
+        raise jaxskel.InputError(f"{args.directory}: not a directory; fit-batch takes a folder of recordings")
+    bones = dict(parse_bone_spec(text) for text in args.bone)
+    if args.plot_bones is not None:
+        if len(bones) < 2:
+            raise jaxskel.InputError("--plot-bones needs two --bone NAME=A,S,B options (x and y)")
+        if args.plot_bones.exists() and not args.overwrite:
+            raise jaxskel.InputError(f"{args.plot_bones} exists; pass --overwrite to replace it")
+    if args.scheduler and args.workers:
+        raise jaxskel.InputError("give --scheduler or --workers, not both")
+    cluster = None
+    scheduler = args.scheduler
+    if args.workers:
+        try:
+            from distributed import LocalCluster
+        except ImportError:
+            raise jaxskel.InputError('--workers needs Dask: pip install "jaxskel[distributed]"') from None
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        scheduler = cluster.scheduler_address
+    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
+    try:
+        batch = jaxskel.fit_batch(
+            args.directory, args.outdir, n_segments=args.segments, root=_root_arg(args.root),
+            clean_data=not args.no_clean, merge_labels=merge, method=args.method, rigid=not args.no_rigid,
+            ik=not args.no_rigid, seed=args.seed, bones=bones, batch_size=args.batch_size, jobs=args.jobs,
+            scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
+        )
+    finally:
+        if cluster is not None:
+            cluster.close()
+    if args.plot_bones is not None:
+        x, y = list(bones)[:2]
+        jaxskel.plot_bone_lengths(batch, x, y, path=args.plot_bones, overwrite=args.overwrite)
+    counts = batch.counts()
+    if not args.quiet:
+        print(f"{len(batch)} trials: {counts.get('ok', 0)} fitted, {counts.get('skipped', 0)} already done, "
+              f"{counts.get('failed', 0)} failed in {batch.seconds:.1f} s; summary: {batch.summary}")
+    for o in batch.failed:
+        print(f"jaxskel: {o.name}: {o.error}", file=sys.stderr)
+    return 1 if batch.failed else 0
+
+
 def _root_arg(root: str | None) -> int | str | None:
     if root is None:
         return None
@@ -222,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
             return _demo(args)
         if args.command == "info":
             return _info(args.file)
+        if args.command == "fit-batch":
+            return _fit_batch(args)
     except JaxskelError as exc:
         print(f"jaxskel: error: {exc}", file=sys.stderr)
         return 2

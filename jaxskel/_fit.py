@@ -12,6 +12,7 @@ every stage's output and diagnostics, and reports progress.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 import warnings
@@ -28,7 +29,7 @@ from ._segment import Segmentation, combine_trials, segment_markers
 from ._topology import Topology, fit_topology, joint_costs
 from ._trial import Trial
 
-__all__ = ["SkeletonResult", "fit_skeleton", "check_units"]
+__all__ = ["SkeletonResult", "fit_skeleton", "check_units", "prepare_fit", "finish_fit", "PreparedFit"]
 
 
 def check_units(trial: Trial) -> None:
@@ -234,6 +235,7 @@ def fit_skeleton(
     progress: bool = False,
     clean_kwargs: dict[str, Any] | None = None,
     segment_kwargs: dict[str, Any] | None = None,
+    confirm_merges: bool = True,
 ) -> SkeletonResult:
     """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
 
@@ -263,15 +265,16 @@ def fit_skeleton(
         Optional names for the segments (length S).
     progress
         Show a progress bar over the stages.
+    confirm_merges
+        After merging labels, check the merges against the fitted skeleton
+        (:func:`jaxskel.confirm_merges`) and, if it corrects any, segment and fit
+        again from the corrected merge. Needs ``rigid`` and ``ik``.
     """
-    trials = _as_trials(trial_or_trials)
-    for t in trials:
-        check_units(t)
-    combined = combine_trials(trials)
-    bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
-    input_labels = combined.labels
-    work = combined
-    timings: dict[str, float] = {}
+    settings = dict(
+        n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
+        alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
+        rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges,
+    )
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
     if progress:
@@ -279,11 +282,98 @@ def fit_skeleton(
 
         bar = tqdm(total=len(stages), desc="fit_skeleton", unit="stage")
 
-    def tick(name: str, t0: float) -> None:
-        timings[name] = time.perf_counter() - t0
+    def on_stage(name: str) -> None:
         if bar is not None:
             bar.set_postfix_str(name)
             bar.update(1)
+
+    prep = prepare_fit(
+        trial_or_trials, n_segments, clean_data=clean_data, merge_labels=merge_labels, seed=seed,
+        clean_kwargs=clean_kwargs, segment_kwargs=segment_kwargs, settings=settings, on_stage=on_stage,
+    )
+
+    def joints_and_skeleton(prep: PreparedFit) -> SkeletonResult:
+        with prep.stage("joint costs", on_stage):
+            pairs = joint_costs(
+                prep.trial, prep.segmentation, alpha=alpha, max_frames=topology_frames, method=method
+            )
+        with prep.stage("tree joints", on_stage):
+            topology = fit_topology(
+                prep.trial, prep.segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
+            )
+        return finish_fit(prep, topology, segment_names=segment_names, on_stage=on_stage)
+
+    result = joints_and_skeleton(prep)
+    if confirm_merges and prep.label_mapping is not None and result.motion is not None:
+        result = _confirm_merges_and_refit(
+            prep, result, joints_and_skeleton,
+            min_run_s=dict(clean_kwargs or {}).get("min_run_s", 0.5) if clean_data else None,
+            n_segments=n_segments, seed=seed, segment_kwargs=segment_kwargs, on_stage=on_stage,
+        )  # fmt: skip
+    if bar is not None:
+        bar.close()
+    return result
+
+
+@dataclasses.dataclass
+class PreparedFit:
+    """A fit after the host-side stages (clean, merge labels, segment).
+
+    The state :func:`jaxskel.fit_batch` carries between its stages; the joint
+    costs and tree joints of several prepared fits are solved together.
+    """
+
+    input_labels: tuple[str, ...]
+    trial: Trial
+    cleaning: CleaningReport | None
+    label_mapping: Any
+    segmentation: Segmentation
+    trial_bounds: tuple[tuple[int, int], ...]
+    timings: dict[str, float]
+    settings: dict[str, Any]
+    #: The cleaned trial given to merge_labels (``None`` without merging): the
+    #: skeleton's confirmation of the merges starts again from it.
+    merge_input: Trial | None = None
+
+    @contextlib.contextmanager
+    def stage(self, name: str, on_stage: Any = None):
+        """Time a stage into ``timings`` (seconds) and report it to ``on_stage(name)``."""
+        t0 = time.perf_counter()
+        yield
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+        if on_stage is not None:
+            on_stage(name)
+
+
+def prepare_fit(
+    trial_or_trials: Trial | Sequence[Trial],
+    n_segments: int | None = None,
+    *,
+    clean_data: bool = True,
+    merge_labels: bool | str = "auto",
+    seed: int = 0,
+    clean_kwargs: dict[str, Any] | None = None,
+    segment_kwargs: dict[str, Any] | None = None,
+    settings: dict[str, Any] | None = None,
+    on_stage: Any = None,
+    device_lock: Any = None,
+) -> PreparedFit:
+    """The host-side stages of :func:`fit_skeleton`: check units, clean, merge labels, segment.
+
+    ``device_lock`` (a lock) is held around the stages that run JAX code (label
+    merging, segmentation), so that other threads may run the numpy-only ones.
+    """
+    device = device_lock if device_lock is not None else contextlib.nullcontext()
+    trials = _as_trials(trial_or_trials)
+    for t in trials:
+        check_units(t)
+    combined = combine_trials(trials)
+    bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
+    prep = PreparedFit(
+        input_labels=combined.labels, trial=combined, cleaning=None, label_mapping=None,
+        segmentation=None, trial_bounds=bounds, timings={}, settings=dict(settings or {}),  # type: ignore[arg-type]
+    )
+    work = combined
 
     # Decide on label merging from the raw data: cleaning's short-run rule would
     # otherwise drop the short relabelled fragments before they can be merged.
@@ -295,7 +385,7 @@ def fit_skeleton(
                 "so labels were not merged; pass merge_labels=True (CLI: --merge-labels yes) if it "
                 "comes from a passive system that relabels markers after occlusions",
                 DegenerateMotionWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
     elif isinstance(merge_labels, bool):
         do_merge = merge_labels
@@ -304,43 +394,85 @@ def fit_skeleton(
     clean_options = dict(clean_kwargs or {})
     min_run_s = clean_options.pop("min_run_s", 0.5)
 
-    t0 = time.perf_counter()
     report = None
-    if clean_data:
-        work, report = clean(work, min_run_s=0.0 if do_merge else min_run_s, **clean_options)
-    tick("clean", t0)
-
-    t0 = time.perf_counter()
-    mapping = None
-    if do_merge:
-        from ._relabel import merge_labels as _merge
-
-        work, mapping = _merge(work)
+    with prep.stage("clean", on_stage):
         if clean_data:
-            # Now that fragments are joined, drop physical markers that are still short-lived.
-            work, after = clean(work, trim_s=0.0, reject_jumps=False, min_run_s=min_run_s)
-            report = dataclasses.replace(report, dropped={**report.dropped, **after.dropped})
-    tick("merge labels", t0)
+            work, report = clean(work, min_run_s=0.0 if do_merge else min_run_s, **clean_options)
 
+    mapping = None
+    with prep.stage("merge labels", on_stage), device:
+        if do_merge:
+            from ._relabel import merge_labels as _merge
+
+            prep.merge_input = work
+            work, mapping = _merge(work)
+            work, report = _clean_merged(work, report, min_run_s if clean_data else None)
+
+    with prep.stage("segment", on_stage), device:
+        segmentation = _segment(work, n_segments, seed, segment_kwargs)
+    prep.trial, prep.cleaning, prep.label_mapping, prep.segmentation = work, report, mapping, segmentation
+    return prep
+
+
+def _clean_merged(work: Trial, report: CleaningReport | None, min_run_s: float | None) -> tuple[Trial, Any]:
+    """After merging labels: drop physical markers that are still short-lived (``None``: keep all)."""
+    if min_run_s is None:
+        return work, report
+    work, after = clean(work, trim_s=0.0, reject_jumps=False, min_run_s=min_run_s)
+    return work, dataclasses.replace(report, dropped={**report.dropped, **after.dropped})
+
+
+def _segment(work: Trial, n_segments: int | None, seed: int, segment_kwargs: dict[str, Any] | None) -> Segmentation:
     if work.n_markers < 3:
         raise DegenerateMotionError(
             f"only {work.n_markers} markers remain after cleaning; a skeleton needs at least 3 "
             "(see result.cleaning / the cleaning report for what was dropped)"
         )
-    t0 = time.perf_counter()
-    segmentation = segment_markers(work, n_segments, seed=seed, **(segment_kwargs or {}))
-    tick("segment", t0)
+    return segment_markers(work, n_segments, seed=seed, **(segment_kwargs or {}))
 
-    t0 = time.perf_counter()
-    pairs = joint_costs(work, segmentation, alpha=alpha, max_frames=topology_frames, method=method)
-    tick("joint costs", t0)
 
-    t0 = time.perf_counter()
-    topology = fit_topology(
-        work, segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
-    )
-    tick("tree joints", t0)
+def _confirm_merges_and_refit(
+    prep: PreparedFit,
+    result: SkeletonResult,
+    refit: Any,
+    *,
+    min_run_s: float | None,
+    n_segments: int | None,
+    seed: int,
+    segment_kwargs: dict[str, Any] | None,
+    on_stage: Any = None,
+) -> SkeletonResult:
+    """Check the label merges against the fitted skeleton; fit again if it corrected any.
 
+    ``refit(prep)`` runs the joint and skeleton stages on a prepared fit.
+    """
+    from ._relabel_confirm import confirm_merges
+
+    with prep.stage("confirm merges", on_stage):
+        merged, mapping = confirm_merges(prep.merge_input, prep.label_mapping, result)
+    info = mapping.diagnostics["skeleton"]
+    if not (info["applied"] and (info["links_added"] or info["links_removed"])):
+        return dataclasses.replace(result, label_mapping=mapping, timings=dict(prep.timings))
+    # The corrected merge changes the markers: segment and fit again from it.
+    report = dataclasses.replace(prep.cleaning, dropped={
+        k: v for k, v in prep.cleaning.dropped.items() if k not in prep.label_mapping.physical_labels
+    }) if prep.cleaning is not None else None  # fmt: skip
+    work, report = _clean_merged(merged, report, min_run_s)
+    with prep.stage("segment", on_stage):
+        segmentation = _segment(work, n_segments, seed, segment_kwargs)
+    again = dataclasses.replace(prep, trial=work, cleaning=report, label_mapping=mapping, segmentation=segmentation)
+    return refit(again)
+
+
+def finish_fit(
+    prep: PreparedFit,
+    topology: Topology,
+    *,
+    segment_names: Sequence[str] | None = None,
+    on_stage: Any = None,
+) -> SkeletonResult:
+    """The stages of :func:`fit_skeleton` after the tree joints: rigid skeleton and IK."""
+    segmentation, work = prep.segmentation, prep.trial
     names = tuple(segment_names) if segment_names is not None else tuple(
         f"seg{i}" for i in range(segmentation.n_segments)
     )
@@ -350,38 +482,30 @@ def fit_skeleton(
         )
 
     skeleton = motion = None
-    t0 = time.perf_counter()
-    if rigid and len(topology.edges):
-        from ._rigid import fit_rigid
+    with prep.stage("rigid", on_stage):
+        if prep.settings.get("rigid", True) and len(topology.edges):
+            from ._rigid import fit_rigid
 
-        skeleton = fit_rigid(
-            work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root
-        )
-    tick("rigid", t0)
-    t0 = time.perf_counter()
-    if ik and skeleton is not None:
-        from ._ik import inverse_kinematics
+            skeleton = fit_rigid(
+                work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root
+            )
+    with prep.stage("ik", on_stage):
+        if prep.settings.get("ik", True) and skeleton is not None:
+            from ._ik import inverse_kinematics
 
-        motion = inverse_kinematics(skeleton, work)
-    tick("ik", t0)
-    if bar is not None:
-        bar.close()
+            motion = inverse_kinematics(skeleton, work)
 
     return SkeletonResult(
-        input_labels=input_labels,
+        input_labels=prep.input_labels,
         trial=work,
-        cleaning=report,
-        label_mapping=mapping,
+        cleaning=prep.cleaning,
+        label_mapping=prep.label_mapping,
         segmentation=segmentation,
         topology=topology,
         skeleton=skeleton,
         motion=motion,
         segment_names=names,
-        trial_bounds=bounds,
-        timings=timings,
-        settings=dict(
-            n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
-            alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
-            rigid=rigid, ik=ik, seed=seed,
-        ),
+        trial_bounds=prep.trial_bounds,
+        timings=dict(prep.timings),
+        settings=dict(prep.settings),
     )

@@ -20,21 +20,24 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
+from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
-from ._jointcost import solve_joints
-from ._jointcost_init import algebraic_start_batched
+from ._jointcost import _settings, _solve_batch
+from ._jointcost_init import algebraic_start
 from ._padding import bucket_size
 from ._segment import Segmentation
 from ._tree import mst_edges, root_tree
 from ._trial import Trial
 
-__all__ = ["PairCosts", "Topology", "joint_costs", "fit_topology", "pair_arrays"]
+__all__ = ["PairCosts", "Topology", "joint_costs", "fit_topology", "pair_arrays", "solve_chunked"]
 
 #: Below this many frames with >= 3 of a pair's markers present, a pair is infeasible.
 MIN_PAIR_FRAMES = 10
@@ -153,7 +156,120 @@ def _check_segmentation(trial: Trial, seg: Segmentation) -> np.ndarray:
     return np.asarray(seg.marker_segment)
 
 
-def joint_costs(
+# ----------------------------------------------------------------- chunked batched solve
+@functools.partial(jax.jit, static_argnames=("settings", "start"))
+def _chunk_solve(xs, ms, alpha, c0, r0, controls, *, settings, start):
+    """One fixed-shape chunk: (optionally) the algebraic start, then the vmapped solve."""
+    if start:
+        c0, r0 = jax.vmap(algebraic_start)(xs, ms)
+    return _solve_batch(xs, ms, alpha, c0, r0, True, True, controls, settings=settings)
+
+
+def solve_chunked(
+    xs: np.ndarray,
+    ms: np.ndarray,
+    alpha: np.ndarray,
+    *,
+    method: str,
+    max_steps: int,
+    chunk: int,
+    c0: np.ndarray | None = None,
+    r0: np.ndarray | None = None,
+    devices: Sequence[Any] | None = None,
+    in_flight: int = 2,
+) -> dict[str, np.ndarray]:
+    """Solve P padded pairs ``(P, F, K, 3)`` in chunks of ``chunk`` pairs; numpy out.
+
+    Every chunk has the same shape (the last is padded with empty pairs), so one
+    compiled solver serves any number of pairs, from one trial or from many trials
+    concatenated (:func:`jaxskel.fit_batch`). Each pair's solve is independent of the
+    other pairs in its chunk (a vmapped while loop freezes finished pairs), so the
+    result of a pair does not depend on how pairs are grouped. ``c0``/``r0`` ``None``
+    takes the algebraic start, computed inside the chunk. Chunks go round-robin to
+    ``devices`` (default: the default device) and are dispatched asynchronously, at
+    most ``in_flight`` per device at a time, so several accelerators work at once. On
+    CPU devices one chunk runs at a time: concurrent executions of this solver were
+    measured to hang XLA:CPU (jaxlib 0.10) for good, from two threads or two
+    forced host devices alike.
+
+    Returns the :class:`jaxskel.JointSolution` fields as numpy arrays with P rows.
+    """
+    n = len(xs)
+    settings, controls = _settings(method, max_steps, None, None, xs.dtype)
+    start = c0 is None
+    devices = list(devices) if devices else [None]
+    if any((d or jax.devices()[0]).platform == "cpu" for d in devices):
+        # XLA:CPU was measured to hang for good (every worker idle) when two executions of
+        # this solver run at once, from two threads or on two CPU devices: one at a time.
+        in_flight = 1
+        devices_in_flight = 1
+    else:
+        devices_in_flight = len(devices)
+    alpha = np.broadcast_to(np.asarray(alpha, xs.dtype), (n,))
+
+    def part(arr: np.ndarray | None, lo: int, hi: int) -> np.ndarray | None:
+        if arr is None:
+            return None
+        piece = arr[lo:hi]
+        return np.concatenate([piece, np.zeros((chunk - len(piece),) + piece.shape[1:], piece.dtype)])
+
+    pending: list[tuple[int, Any]] = []
+    done: list[tuple[int, dict[str, np.ndarray]]] = []
+
+    def collect() -> None:
+        lo, out = pending.pop(0)
+        take = min(chunk, n - lo)
+        done.append((lo, {k: np.asarray(v)[:take] for k, v in out.items()}))
+
+    for i, lo in enumerate(range(0, n, chunk)):
+        hi = min(lo + chunk, n)
+        args = [part(a, lo, hi) for a in (xs, ms, alpha, c0, r0)]
+        device = devices[i % len(devices)]
+        if device is not None:
+            args = [None if a is None else jax.device_put(a, device) for a in args]
+            ctrl = jax.device_put(controls, device)
+        else:
+            ctrl = controls
+        sol = _chunk_solve(*args, ctrl, settings=settings, start=start)
+        pending.append((lo, {f.name: getattr(sol, f.name) for f in dataclasses.fields(sol)}))
+        if len(pending) >= in_flight * devices_in_flight:
+            collect()
+    while pending:
+        collect()
+    done.sort(key=lambda item: item[0])
+    if not done:
+        return {}
+    return {k: np.concatenate([d[k] for _, d in done]) for k in done[0][1]}
+
+
+# --------------------------------------------------------------------- all-pairs pass
+@dataclasses.dataclass(frozen=True)
+class AllPairsProblem:
+    """Host-side all-pairs problem of one trial: feasibility and padded pair arrays.
+
+    ``xs`` (P, f_pad, k_pad, 3) and ``ms`` (P, f_pad, k_pad) hold the P candidate
+    pairs (``pairs`` (P, 2)); infeasible pairs are only in ``reasons``.
+    """
+
+    n_segments: int
+    frames: np.ndarray
+    sizes: np.ndarray
+    reasons: dict[tuple[int, int], str]
+    pairs: np.ndarray
+    xs: np.ndarray
+    ms: np.ndarray
+    alpha: float
+    method: str
+    max_steps: int
+    weight: str
+
+    @property
+    def shape_key(self) -> tuple[int, int]:
+        """(f_pad, k_pad): problems with the same key can share chunks."""
+        return int(self.xs.shape[1]), int(self.xs.shape[2])
+
+
+def all_pairs_problem(
     trial: Trial,
     segmentation: Segmentation,
     *,
@@ -164,18 +280,8 @@ def joint_costs(
     exercised_ratio: float = 1.5,
     min_pair_markers: int = 4,
     weight: str = "objective",
-) -> PairCosts:
-    """Approximate joint cost for every pair of segments (the topology pass).
-
-    ``max_frames`` evenly spaced frames are used (the paper subsamples
-    drastically here; the exact solve is for tree joints only). A pair is
-    infeasible when its segments together have fewer than ``min_pair_markers``
-    markers (with three, any radii fit exactly: the variance term is zero and
-    only the prior places the joint, so the cost says nothing), are seen
-    together (>= 3 markers present) in fewer than ``MIN_PAIR_FRAMES`` frames, or
-    never move relative to each other: the largest cross-segment distance std-dev
-    is below ``exercised_ratio`` times the noise floor of the segmentation.
-    """
+) -> AllPairsProblem:
+    """Feasibility tests and padded arrays of :func:`joint_costs` (no solve)."""
     seg = _check_segmentation(trial, segmentation)
     if weight not in ("objective", "variance"):
         raise InputError(f"weight must be 'objective' or 'variance', got {weight!r}")
@@ -215,6 +321,20 @@ def joint_costs(
                 continue
             candidates.append((a, b))
 
+    pairs = np.asarray(candidates, dtype=int).reshape(-1, 2)
+    kmax = max((int(sizes[a] + sizes[b]) for a, b in candidates), default=4)
+    k_pad = bucket_size(kmax, minimum=4, steps_per_octave=1)
+    f_pad = bucket_size(len(frames))
+    xs, ms = pair_arrays(x, mask, seg, pairs, frames, k_pad, f_pad)
+    return AllPairsProblem(
+        n_segments=s, frames=frames, sizes=sizes, reasons=reasons, pairs=pairs, xs=xs, ms=ms,
+        alpha=float(alpha), method=method, max_steps=int(max_steps), weight=weight,
+    )
+
+
+def pair_costs_from(problem: AllPairsProblem, sol: dict[str, np.ndarray]) -> PairCosts:
+    """Assemble :class:`PairCosts` from the solutions of ``problem.pairs`` (rows in order)."""
+    s = problem.n_segments
     cost = np.full((s, s), np.inf)
     objective = np.full((s, s), np.inf)
     steps = np.zeros((s, s), dtype=int)
@@ -223,57 +343,253 @@ def joint_costs(
     undetermined = np.full((s, s), 3, dtype=int)
     positions: dict[tuple[int, int], np.ndarray] = {}
     radii: dict[tuple[int, int], np.ndarray] = {}
-    if candidates:
-        pairs = np.asarray(candidates)
-        kmax = max(int(sizes[a] + sizes[b]) for a, b in candidates)
-        k_pad = bucket_size(kmax, minimum=4, steps_per_octave=1)
-        f_pad = bucket_size(len(frames))
-        xs, ms = pair_arrays(x, mask, seg, pairs, frames, k_pad, f_pad)
-        # The closed-form start: the objective is non-convex, the centroid is a poor start.
-        c0, r0 = algebraic_start_batched(jnp.asarray(xs), jnp.asarray(ms))
-        c0, r0 = np.asarray(c0), np.asarray(r0)
-        # Solve in fixed-size chunks of pairs (padded with empty pairs): one compiled
-        # shape for any segment count, and XLA's CPU runtime was measured to hang for
-        # good on a single vmapped solve over >= ~128 pairs (92 were fine).
-        chunks = []
-        for start in range(0, len(pairs), PAIR_CHUNK):
-            stop = min(start + PAIR_CHUNK, len(pairs))
-
-            def chunk(arr: np.ndarray) -> jnp.ndarray:
-                part = arr[start:stop]
-                pad = np.zeros((PAIR_CHUNK - len(part),) + part.shape[1:], part.dtype)
-                return jnp.asarray(np.concatenate([part, pad]))
-
-            out = solve_joints(
-                chunk(xs), chunk(ms), alpha=alpha, method=method, max_steps=max_steps,
-                c0=chunk(c0), r0=chunk(r0),
-            )
-            chunks.append(jax.tree_util.tree_map(lambda leaf, n=stop - start: np.asarray(leaf)[:n], out))
-        sol = jax.tree_util.tree_map(lambda *leaves: np.concatenate(leaves), *chunks)
-        for p, (a, b) in enumerate(pairs):
-            k = int(sizes[a] + sizes[b])
-            pair_variance = float(sol.variance[p])
-            for u, v in ((a, b), (b, a)):
-                cost[u, v] = pair_variance if weight == "variance" else float(sol.cost[p])
-                objective[u, v] = float(sol.cost[p])
-                steps[u, v] = int(sol.steps[p])
-                result[u, v] = int(sol.result[p])
-                unc[u, v] = float(sol.uncertainty[p])
-                undetermined[u, v] = int(sol.undetermined_dims[p])
-            positions[(a, b)] = np.asarray(sol.positions[p, : len(frames)])
-            radii[(a, b)] = np.asarray(sol.radii[p, :k])
+    n_frames = len(problem.frames)
+    for p, (a, b) in enumerate(problem.pairs.tolist()):
+        k = int(problem.sizes[a] + problem.sizes[b])
+        pair_variance = float(sol["variance"][p])
+        for u, v in ((a, b), (b, a)):
+            cost[u, v] = pair_variance if problem.weight == "variance" else float(sol["cost"][p])
+            objective[u, v] = float(sol["cost"][p])
+            steps[u, v] = int(sol["steps"][p])
+            result[u, v] = int(sol["result"][p])
+            unc[u, v] = float(sol["uncertainty"][p])
+            undetermined[u, v] = int(sol["undetermined_dims"][p])
+        positions[(a, b)] = np.asarray(sol["positions"][p, :n_frames])
+        radii[(a, b)] = np.asarray(sol["radii"][p, :k])
     return PairCosts(
         cost=cost,
         objective=objective,
-        reasons=reasons,
+        reasons=problem.reasons,
         steps=steps,
         result=result,
         uncertainty=unc,
         undetermined=undetermined,
-        frames=frames,
-        alpha=alpha,
+        frames=problem.frames,
+        alpha=problem.alpha,
         positions=positions,
         radii=radii,
+    )
+
+
+def joint_costs(
+    trial: Trial,
+    segmentation: Segmentation,
+    *,
+    alpha: float = 1e-5,
+    max_frames: int = 300,
+    method: str = "lm",
+    max_steps: int = 100,
+    exercised_ratio: float = 1.5,
+    min_pair_markers: int = 4,
+    weight: str = "objective",
+) -> PairCosts:
+    """Approximate joint cost for every pair of segments (the topology pass).
+
+    ``max_frames`` evenly spaced frames are used (the paper subsamples
+    drastically here; the exact solve is for tree joints only). A pair is
+    infeasible when its segments together have fewer than ``min_pair_markers``
+    markers (with three, any radii fit exactly: the variance term is zero and
+    only the prior places the joint, so the cost says nothing), are seen
+    together (>= 3 markers present) in fewer than ``MIN_PAIR_FRAMES`` frames, or
+    never move relative to each other: the largest cross-segment distance std-dev
+    is below ``exercised_ratio`` times the noise floor of the segmentation.
+
+    The candidate pairs are solved in fixed chunks of ``PAIR_CHUNK`` pairs
+    (:func:`solve_chunked`), each starting from the closed-form algebraic fit.
+    """
+    problem = all_pairs_problem(
+        trial, segmentation, alpha=alpha, max_frames=max_frames, method=method, max_steps=max_steps,
+        exercised_ratio=exercised_ratio, min_pair_markers=min_pair_markers, weight=weight,
+    )
+    sol = solve_pairs([problem])[0]
+    return pair_costs_from(problem, sol)
+
+
+def solve_pairs(
+    problems: Sequence[AllPairsProblem], *, devices: Sequence[Any] | None = None
+) -> list[dict[str, np.ndarray]]:
+    """Solve the candidate pairs of several trials together.
+
+    Problems with the same padded shape, method and step cap are concatenated and
+    go through one chunked solve (pairs of different trials share chunks); the
+    solutions are split back per problem.
+    """
+    out: list[dict[str, np.ndarray]] = [{} for _ in problems]
+    groups: dict[tuple, list[int]] = {}
+    for i, p in enumerate(problems):
+        groups.setdefault((p.shape_key, p.method, p.max_steps, p.xs.dtype.str), []).append(i)
+    for members in groups.values():
+        xs = np.concatenate([problems[i].xs for i in members])
+        ms = np.concatenate([problems[i].ms for i in members])
+        alpha = np.concatenate([np.full(len(problems[i].pairs), problems[i].alpha) for i in members])
+        first = problems[members[0]]
+        sol = solve_chunked(
+            xs, ms, alpha, method=first.method, max_steps=first.max_steps, chunk=PAIR_CHUNK, devices=devices
+        )
+        lo = 0
+        for i in members:
+            hi = lo + len(problems[i].pairs)
+            out[i] = {k: v[lo:hi] for k, v in sol.items()}
+            lo = hi
+    return out
+
+
+# ------------------------------------------------------------------------- tree joints
+@dataclasses.dataclass(frozen=True)
+class TreeProblem:
+    """Host-side full-frame problem of one trial's tree joints (J joints, all frames)."""
+
+    edges: np.ndarray
+    roots: tuple[int, ...]
+    n_frames: int
+    alphas: np.ndarray
+    ks: np.ndarray
+    xs: np.ndarray
+    ms: np.ndarray
+    c0: np.ndarray
+    r0: np.ndarray
+    first_steps: np.ndarray
+    method: str
+    max_steps: int
+    pair_costs: PairCosts
+
+    @property
+    def shape_key(self) -> tuple[int, int]:
+        return int(self.xs.shape[1]), int(self.xs.shape[2])
+
+
+def tree_problem(
+    trial: Trial,
+    segmentation: Segmentation,
+    pair_costs: PairCosts,
+    *,
+    root: int | str | None = None,
+    alpha: float = 1e-5,
+    alpha_tree: float | str = "auto",
+    method: str = "lm",
+    max_steps: int = 200,
+) -> TreeProblem:
+    """MST, rooting and the padded warm-started arrays of :func:`fit_topology` (no solve)."""
+    seg = _check_segmentation(trial, segmentation)
+    s = segmentation.n_segments
+    if isinstance(root, str):
+        root = int(seg[trial.marker_index(root)[0]])
+    if root is not None and not 0 <= int(root) < s:
+        raise InputError(f"root segment {root} out of range for {s} segments")
+    sizes = np.bincount(seg[seg >= 0], minlength=s)
+    undirected = mst_edges(pair_costs.cost)
+    edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
+    if len(roots) > 1:
+        warnings.warn(
+            f"the joint-cost graph is disconnected ({len(roots)} components): some segment pairs "
+            "are infeasible (see topology.pair_costs.reasons); the skeleton is a forest",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    j = len(edges)
+    n_frames = trial.n_frames
+    key = [tuple(sorted((int(p), int(c)))) for p, c in edges]
+    undetermined1 = np.array([pair_costs.undetermined[a, b] for a, b in key], dtype=int)
+    if alpha_tree == "auto":
+        alphas = np.where(undetermined1 > 0, alpha, 0.0)
+    else:
+        alphas = np.full(j, float(alpha_tree))
+    ks = np.array([int(sizes[a] + sizes[b]) for a, b in key], dtype=int)
+    k_pad = bucket_size(int(ks.max(initial=4)), minimum=4, steps_per_octave=1)
+    f_pad = bucket_size(n_frames)
+    frames = np.arange(n_frames)
+    x, mask = trial.to_arrays()
+    xs, ms = pair_arrays(x, mask, seg, np.asarray(key, dtype=int).reshape(-1, 2), frames, k_pad, f_pad)
+    # Warm start: first-pass joints interpolated in time, first-pass radii.
+    t1 = pair_costs.frames
+    c0 = np.zeros((j, f_pad, 3))
+    r0 = np.zeros((j, k_pad))
+    for i, kk in enumerate(key):
+        p1 = pair_costs.positions[kk]
+        for d in range(3):
+            c0[i, :n_frames, d] = np.interp(frames, t1, p1[:, d])
+        r0[i, : ks[i]] = pair_costs.radii[kk]
+    first_steps = np.array([pair_costs.steps[a, b] for a, b in key], dtype=int)
+    return TreeProblem(
+        edges=edges, roots=tuple(roots), n_frames=n_frames, alphas=alphas, ks=ks, xs=xs, ms=ms, c0=c0, r0=r0,
+        first_steps=first_steps, method=method, max_steps=int(max_steps), pair_costs=pair_costs,
+    )
+
+
+def solve_trees(
+    problems: Sequence[TreeProblem], *, devices: Sequence[Any] | None = None, chunk: int | None = None
+) -> list[dict[str, np.ndarray]]:
+    """Solve the tree joints of several trials together (shared chunks per padded shape).
+
+    With one problem the chunk is the joint count's bucket (4, 8, 16, ...), as
+    :func:`fit_topology` always did. With several, joints of the same padded shape
+    are pooled, sorted by their first-pass step count (slow joints together, so a
+    chunk's fast joints do not idle while its slowest one iterates) and solved in
+    chunks of ``chunk`` joints (default: the bucket of the largest tree).
+    """
+    out: list[dict[str, np.ndarray]] = [{} for _ in problems]
+    groups: dict[tuple, list[int]] = {}
+    for i, p in enumerate(problems):
+        if len(p.edges):
+            groups.setdefault((p.shape_key, p.method, p.max_steps), []).append(i)
+    for members in groups.values():
+        owner = np.concatenate([np.full(len(problems[i].edges), i) for i in members])
+        row = np.concatenate([np.arange(len(problems[i].edges)) for i in members])
+        steps = np.concatenate([problems[i].first_steps for i in members])
+        order = np.argsort(-steps, kind="stable") if len(members) > 1 else np.arange(len(owner))
+
+        def pooled(name: str, members=members, order=order) -> np.ndarray:
+            return np.concatenate([getattr(problems[i], name) for i in members])[order]
+
+        size = chunk or bucket_size(max(len(problems[i].edges) for i in members), minimum=4, steps_per_octave=1)
+        first = problems[members[0]]
+        sol = solve_chunked(
+            pooled("xs"), pooled("ms"), pooled("alphas"), method=first.method, max_steps=first.max_steps,
+            chunk=size, c0=pooled("c0"), r0=pooled("r0"), devices=devices,
+        )
+        for i in members:
+            sel = np.flatnonzero(owner[order] == i)
+            sel = sel[np.argsort(row[order][sel])]
+            out[i] = {k: v[sel] for k, v in sol.items()}
+    return out
+
+
+def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
+    """Assemble :class:`Topology` from the tree joints' solutions (rows = edges)."""
+    j = len(problem.edges)
+    n_frames = problem.n_frames
+    if j == 0:
+        return Topology(
+            edges=problem.edges, root=problem.roots[0], roots=problem.roots,
+            joint_positions=np.zeros((n_frames, 0, 3)), joint_cost=np.zeros(0), radii=(),
+            uncertainty=np.zeros(0), undetermined=np.zeros(0, int), alpha=np.zeros(0), steps=np.zeros(0, int),
+            result=np.zeros(0, int), converged=np.zeros(0, bool), pair_costs=problem.pair_costs,
+        )
+    valid = sol["valid_frames"][:, :n_frames]
+    pos = sol["positions"][:, :n_frames]
+    joint_positions = np.where(valid[..., None], pos, np.nan).transpose(1, 0, 2)
+    converged = np.asarray(sol["converged"])
+    if not converged.all():
+        warnings.warn(
+            f"{int((~converged).sum())} of {j} tree joints did not converge in {problem.max_steps} steps; "
+            "see topology.steps / topology.result",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    return Topology(
+        edges=problem.edges,
+        root=problem.roots[0],
+        roots=problem.roots,
+        joint_positions=joint_positions,
+        joint_cost=np.asarray(sol["cost"]),
+        radii=tuple(np.asarray(sol["radii"][i, : problem.ks[i]]) for i in range(j)),
+        uncertainty=np.asarray(sol["uncertainty"]),
+        undetermined=np.asarray(sol["undetermined_dims"]),
+        alpha=problem.alphas,
+        steps=np.asarray(sol["steps"]),
+        result=np.asarray(sol["result"]),
+        converged=converged,
+        pair_costs=problem.pair_costs,
     )
 
 
@@ -302,91 +618,12 @@ def fit_topology(
         joints with an undetermined direction (a hinge's centre slides along its
         axis; the prior then places it nearest the markers, as the paper notes).
     """
-    seg = _check_segmentation(trial, segmentation)
-    s = segmentation.n_segments
     if pair_costs is None:
         pair_costs = joint_costs(
             trial, segmentation, alpha=alpha, max_frames=topology_frames, method=method
         )
-    if isinstance(root, str):
-        root = int(seg[trial.marker_index(root)[0]])
-    if root is not None and not 0 <= int(root) < s:
-        raise InputError(f"root segment {root} out of range for {s} segments")
-    sizes = np.bincount(seg[seg >= 0], minlength=s)
-    undirected = mst_edges(pair_costs.cost)
-    edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
-    if len(roots) > 1:
-        warnings.warn(
-            f"the joint-cost graph is disconnected ({len(roots)} components): some segment pairs "
-            "are infeasible (see topology.pair_costs.reasons); the skeleton is a forest",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    j = len(edges)
-    n_frames = trial.n_frames
-    x, mask = trial.to_arrays()
-    if j == 0:
-        return Topology(
-            edges=edges, root=roots[0], roots=tuple(roots),
-            joint_positions=np.zeros((n_frames, 0, 3)), joint_cost=np.zeros(0), radii=(),
-            uncertainty=np.zeros(0), undetermined=np.zeros(0, int), alpha=np.zeros(0), steps=np.zeros(0, int),
-            result=np.zeros(0, int), converged=np.zeros(0, bool), pair_costs=pair_costs,
-        )
-
-    key = [tuple(sorted((int(p), int(c)))) for p, c in edges]
-    undetermined1 = np.array([pair_costs.undetermined[a, b] for a, b in key])
-    if alpha_tree == "auto":
-        alphas = np.where(undetermined1 > 0, alpha, 0.0)
-    else:
-        alphas = np.full(j, float(alpha_tree))
-    ks = np.array([int(sizes[a] + sizes[b]) for a, b in key])
-    k_pad = bucket_size(int(ks.max()), minimum=4, steps_per_octave=1)
-    f_pad = bucket_size(n_frames)
-    frames = np.arange(n_frames)
-    xs, ms = pair_arrays(x, mask, seg, np.asarray(key), frames, k_pad, f_pad)
-    # Warm start: first-pass joints interpolated in time, first-pass radii.
-    t1 = pair_costs.frames
-    c0 = np.zeros((j, f_pad, 3))
-    r0 = np.zeros((j, k_pad))
-    for i, kk in enumerate(key):
-        p1 = pair_costs.positions[kk]
-        for d in range(3):
-            c0[i, :n_frames, d] = np.interp(frames, t1, p1[:, d])
-        r0[i, : ks[i]] = pair_costs.radii[kk]
-    # Pad the joint count to a bucket (masked, empty joints) so compiled shapes are reused.
-    j_pad = bucket_size(j, minimum=4, steps_per_octave=1)
-
-    def padded(arr: np.ndarray) -> jnp.ndarray:
-        return jnp.asarray(np.concatenate([arr, np.zeros((j_pad - j,) + arr.shape[1:], arr.dtype)]))
-
-    sol = solve_joints(
-        padded(xs), padded(ms), alpha=padded(alphas), method=method, max_steps=max_steps,
-        c0=padded(c0), r0=padded(r0),
+    problem = tree_problem(
+        trial, segmentation, pair_costs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method,
+        max_steps=max_steps,
     )
-    sol = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf)[:j], sol)
-    valid = np.asarray(sol.valid_frames)[:, :n_frames]
-    pos = np.asarray(sol.positions)[:, :n_frames]
-    joint_positions = np.where(valid[..., None], pos, np.nan).transpose(1, 0, 2)
-    converged = np.asarray(sol.converged)
-    if not converged.all():
-        warnings.warn(
-            f"{int((~converged).sum())} of {j} tree joints did not converge in {max_steps} steps; "
-            "see topology.steps / topology.result",
-            ConvergenceWarning,
-            stacklevel=2,
-        )
-    return Topology(
-        edges=edges,
-        root=roots[0],
-        roots=tuple(roots),
-        joint_positions=joint_positions,
-        joint_cost=np.asarray(sol.cost),
-        radii=tuple(np.asarray(sol.radii[i, : ks[i]]) for i in range(j)),
-        uncertainty=np.asarray(sol.uncertainty),
-        undetermined=np.asarray(sol.undetermined_dims),
-        alpha=alphas,
-        steps=np.asarray(sol.steps),
-        result=np.asarray(sol.result),
-        converged=converged,
-        pair_costs=pair_costs,
-    )
+    return topology_from(problem, solve_trees([problem])[0])
