@@ -11,9 +11,9 @@ importing to leave JAX's global setting alone.
 jaxskel also runs XLA's CPU backend with single-threaded Eigen
 (``--xla_cpu_multi_thread_eigen=false`` in ``XLA_FLAGS``) unless ``XLA_FLAGS``
 already says otherwise or ``JAXSKEL_XLA_MULTI_THREAD=1``: with the multi-threaded
-Eigen pool, vmapped while-loop solves (the joint costs) were seen to wedge for
-good on 2-core machines under load -- every worker parked, the result never
-ready. This only takes effect if no JAX computation ran before ``import jaxskel``.
+Eigen pool, vmapped solves were seen to wedge for good on 2-core machines under
+load (see ``jaxskel._linalg`` for the mechanism, and ``docs/design.md``). This only
+takes effect if no JAX computation ran before ``import jaxskel``.
 """
 
 from __future__ import annotations

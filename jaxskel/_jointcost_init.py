@@ -30,6 +30,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ._jointcost_lm import inv3
+from ._linalg import spd_solve
+
 __all__ = ["algebraic_start"]
 
 
@@ -60,7 +63,7 @@ def algebraic_start(
     ev = jnp.linalg.eigvalsh(utu)
     good = (n[:, 0] >= 5) & (ev[:, 0] > 1e-8 * jnp.maximum(ev[:, -1], 1e-300))
     utu_safe = jnp.where(good[:, None, None], utu, jnp.eye(3, dtype=dtype))
-    inv = jnp.linalg.inv(utu_safe)
+    inv = inv3(utu_safe)
     proj = jnp.einsum("fki,fij,flj->fkl", u, inv, u)  # H_f
     resid_op = (eye[None] - proj) * good[:, None, None]  # (I - H_f), zero for bad frames
     lhs = jnp.einsum("fki,fkl,flj->ij", p, resid_op, p)
@@ -69,7 +72,7 @@ def algebraic_start(
     scale = jnp.where(any_good, jnp.trace(lhs) / k, 1.0)
     present = (jnp.sum(w * good[:, None], axis=0) > 0).astype(dtype)
     # Ridge fixes the common shift of s and any marker never seen in a good frame.
-    s = jnp.linalg.solve(lhs + 1e-9 * scale * eye + jnp.diag(1.0 - present) * scale, rhs)
+    s = spd_solve(lhs + 1e-9 * scale * eye + jnp.diag(1.0 - present) * scale, rhs)  # SPD by the ridge
     s = jnp.where(any_good, s, 0.0)
     c = jnp.einsum("fij,fkj,fk->fi", inv, u, b - jnp.einsum("fkl,l->fk", p, s))
     c = jnp.where(good[:, None], c, centroid)

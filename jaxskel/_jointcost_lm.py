@@ -54,6 +54,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._linalg import spd_solve
+
 __all__ = ["PairProblem", "block_solve", "levenberg_marquardt", "inv3"]
 
 # Per-frame damping: bumped to at least this when a frame's step is refused.
@@ -102,7 +104,8 @@ def block_solve(
     a_inv_b = a_inv @ b
     a_inv_rhs = jnp.einsum("fij,fj->fi", a_inv, rhs_c)
     schur = jnp.diag(c_diag) - jnp.einsum("fik,fil->kl", b, a_inv_b)
-    x_r = jnp.linalg.solve(schur, rhs_r - jnp.einsum("fik,fi->k", b, a_inv_rhs))
+    # S is SPD (a Schur complement of the damped normal matrix); see _linalg for why not jnp.linalg.
+    x_r = spd_solve(schur, rhs_r - jnp.einsum("fik,fi->k", b, a_inv_rhs))
     x_c = a_inv_rhs - jnp.einsum("fik,k->fi", a_inv_b, x_r)
     return x_c, x_r
 

@@ -25,11 +25,10 @@ def fitted_relabelled_body():
         body, motion="calibration", duration=15.0, seed=1, noise=0.002, soft_tissue=0.005,
         gaps=4, ghosts=6, relabel=True,
     )  # fmt: skip
-    merged, mapping = jaxskel.merge_labels(trial)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
-        result = jaxskel.fit_skeleton(merged, merge_labels=False, clean_data=False)
-    return trial, truth, mapping, result
+        result = jaxskel.fit_skeleton(trial, clean_data=False, merge_labels=True, confirm_merges=False)
+    return trial, truth, result.label_mapping, result
 
 
 def _fragment_truth(truth, mapping) -> np.ndarray:
@@ -193,3 +192,32 @@ def test_real_relabelled_recording_is_improved_by_the_skeleton():
     assert label_accuracy(confirmed.physical, runs.label, weights=runs.length) >= 0.999
     assert confirmed.n_physical == 62
     assert_no_cooccurring_merge(raw, confirmed)
+
+
+def test_fit_skeleton_confirms_merges_and_refits(fitted_relabelled_body):
+    """fit_skeleton(merge_labels=...) runs the confirmation and, when it corrects merges, fits again."""
+    trial, truth, mapping, first = fitted_relabelled_body
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
+        result = jaxskel.fit_skeleton(trial, clean_data=False, merge_labels=True)
+    _, expected = jaxskel.confirm_merges(trial, mapping, first)
+    got = result.label_mapping
+    assert got.diagnostics["skeleton"]["applied"] and "confirm merges" in result.timings
+    assert partition(range(got.n_fragments), got.fragment_physical) == partition(
+        range(expected.n_fragments), expected.fragment_physical
+    )
+    # The refit used the corrected markers: the result's trial is the corrected merge, and its
+    # segmentation is the true one (every marker grouped with the markers of its true segment).
+    assert set(result.trial.labels) == set(got.physical_labels)
+    true_segment = {
+        got.physical_labels[p]: int(np.bincount(truth.marker_segment[got.physical == p]).argmax())
+        for p in range(got.n_physical)
+    }
+    assert partition(result.trial.labels, result.segmentation.marker_segment) == partition(
+        result.trial.labels, [true_segment[lab] for lab in result.trial.labels]
+    )
+    # Every input label points at the column of its physical marker in the result's trial.
+    column = result.physical_input()
+    for i in np.flatnonzero(got.physical >= 0):
+        assert result.trial.labels[column[i]] == got.physical_labels[got.physical[i]]
+    assert result.motion is not None and np.median(result.motion.marker_rms) < 0.008
