@@ -5,8 +5,8 @@ calibration motion at 120 Hz, 2 mm noise, posed on the *true* skeleton (so both 
 solve exactly the same problem). Every solver starts from the same per-frame Horn
 initial guess and minimises the same energy (markers + the 1 mm/rad pose prior).
 
-* ``jaxskel core``: the jit-compiled stage (:func:`jaxskel._ik._ik_frames`: Horn start,
-  analytic-Jacobian Levenberg-Marquardt, vmapped over frames in batches), warm.
+* ``jaxskel core``: the compiled solver (:func:`jaxskel._ik_batch.solve`: Horn start,
+  tree-eliminated Levenberg-Marquardt/Newton, frames vectorised in chunks), warm.
 * ``jaxskel inverse_kinematics``: the public call (input checks, padding, host copies).
 * ``scipy``: ``scipy.optimize.least_squares`` (trust-region reflective, 2-point Jacobian)
   frame by frame in a Python loop on a subset of frames; the figure is frames per second.
@@ -42,7 +42,6 @@ import jaxskel  # noqa: E402,F401  (enables float64)
 from jaxskel import synth  # noqa: E402
 from jaxskel._ik import (  # noqa: E402
     DEFAULT_PRIOR_WEIGHT,
-    _ik_frames,
     _relative_rotations,
     _residuals,
     forward_kinematics,
@@ -50,6 +49,7 @@ from jaxskel._ik import (  # noqa: E402
     ik_model,
     inverse_kinematics,
 )
+from jaxskel._ik_batch import batch_model, solve  # noqa: E402
 from jaxskel._padding import bucket_size  # noqa: E402
 from jaxskel._rigid import Skeleton  # noqa: E402
 
@@ -151,16 +151,17 @@ def main() -> None:
     identity = jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0]), (f_pad, n_seg, 1))
     xj, mj = jnp.asarray(xp), jnp.asarray(mp)
 
+    fast = batch_model(skeleton.edges, skeleton.joint_offsets, skeleton.marker_offsets, skeleton.marker_segment)
+
     def core():
-        return _ik_frames(model, xj, mj, jnp.zeros((f_pad, 3)), identity, identity, pw, jnp.asarray(True),
-                          max_steps=100, batch_size=128)
+        return solve(fast, xp[:n_frames], mp[:n_frames], None, None, None, np.asarray(pw), max_steps=100)
 
     start = time.perf_counter()
-    jax.block_until_ready(core())
+    core()
     compile_s = time.perf_counter() - start
-    (sol, _, joints, _), core_s = timed(core, repeat=3)
-    joints = np.asarray(joints)[:n_frames]
-    steps = np.asarray(sol.num_steps)[:n_frames]
+    sol, core_s = timed(core, repeat=3)
+    joints = sol["joint_positions"]
+    steps = sol["num_steps"]
     _, public_s = timed(lambda: inverse_kinematics(skeleton, trial).joint_positions, repeat=2)
 
     # Same starting guesses for the references.

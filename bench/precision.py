@@ -85,10 +85,10 @@ def _best_of(fn, repeat: int = 2):
 
 def kernel_precision(out: dict) -> dict:
     """The joint-solve and IK kernels called directly with float32 and float64 arrays."""
-    import jax.numpy as jnp
 
     import jaxskel as js
-    from jaxskel._ik import DEFAULT_PRIOR_WEIGHT, _identity, _ik_frames, ik_model
+    from jaxskel._ik import DEFAULT_PRIOR_WEIGHT
+    from jaxskel._ik_batch import batch_model, solve
     from jaxskel._topology import PAIR_CHUNK, pair_arrays
 
     trial, seg, topo, sk = out["trial"], out["segmentation"], out["topology"], out["skeleton"]
@@ -117,15 +117,14 @@ def kernel_precision(out: dict) -> dict:
         name = np.dtype(dtype).name
         pair_sol, pair_s = _best_of(lambda: js.solve_joints(xs.astype(dtype), mks, alpha=ALPHA, max_steps=100))
         tree_sol, tree_s = _best_of(lambda: js.solve_joints(xt.astype(dtype), mt, alpha=ALPHA, max_steps=200))
-        model = ik_model(sk.edges, sk.joint_offsets, sk.marker_offsets, sk.marker_segment, n_markers=m_pad, dtype=dtype)
-        q0 = jnp.tile(_identity(dtype), (f_pad, sk.n_segments, 1))
-        args = (model, jnp.asarray(xip, dtype), jnp.asarray(mip), jnp.zeros((f_pad, 3), dtype), q0, q0,
-                jnp.full((sk.n_segments,), DEFAULT_PRIOR_WEIGHT, dtype), jnp.asarray(True))
-        ik_out, ik_s = _best_of(lambda: _ik_frames(*args, max_steps=100, batch_size=128))
+        model = batch_model(sk.edges, sk.joint_offsets, sk.marker_offsets, sk.marker_segment, dtype=dtype)
+        prior_weight = np.full((sk.n_segments,), DEFAULT_PRIOR_WEIGHT, dtype)
+        ik_out, ik_s = _best_of(lambda: solve(model, xip.astype(dtype), mip, None, None, None, prior_weight,
+                                              max_steps=100))
         results[name] = {
             "pairs": (np.asarray(pair_sol.cost), pair_s, str(pair_sol.cost.dtype)),
             "tree": (np.asarray(tree_sol.positions)[:, : trial.n_frames], tree_s, str(tree_sol.positions.dtype)),
-            "ik": (np.asarray(ik_out[2])[: trial.n_frames], ik_s, str(ik_out[2].dtype)),
+            "ik": (ik_out["joint_positions"][: trial.n_frames], ik_s, str(ik_out["joint_positions"].dtype)),
         }
     a, b = results["float64"], results["float32"]
     cost64, cost32 = a["pairs"][0], b["pairs"][0].astype(float)

@@ -53,8 +53,11 @@ def rows(records: list[dict]) -> list[dict]:
                     "cold_s": jx["fit"]["cold_s"], "warm_s": jx["fit"]["warm_s"],
                     "ref_s": ref["fit"]["s"], "extrapolated": ref["fit"]["extrapolated"],
                     "ratio": _ratio(ref["fit"]["s"], jx["fit"]["warm_s"]),
+                    "cpu_ratio": _ratio(ref["fit"].get("cpu_s"), jx["fit"].get("warm_cpu_s")),
                     "jx_peak_mb": max(jx["memory"]["cold"]["peak_rss_mb"], jx["memory"]["warm"]["peak_rss_mb"]),
-                    "ref_peak_mb": ref["memory"]["peak_rss_mb"],
+                    "jx_warm_adds_mb": jx["memory"]["warm"]["peak_rss_mb"] - jx["memory"]["warm"]["start_rss_mb"],
+                    # the reference runs after jaxskel in the same process: count what it adds
+                    "ref_peak_mb": ref["memory"]["peak_rss_mb"] - ref["memory"]["start_rss_mb"],
                 })
             for stage, label in STAGE_LABELS.items():
                 if stage not in jx["stages"]:
@@ -65,9 +68,12 @@ def rows(records: list[dict]) -> list[dict]:
                     "cold_s": jx["stages"][stage]["cold_s"], "warm_s": jx["stages"][stage]["warm_s"],
                     "ref_s": r.get("s"), "extrapolated": r.get("extrapolated"),
                     "ratio": _ratio(r.get("s"), jx["stages"][stage]["warm_s"]),
+                    "cpu_ratio": _ratio(r.get("cpu_s"), jx["stages"][stage].get("warm_cpu_s")),
+                    "detail": case.get("group") == "frames" or case.get("group") == "test",
                 })
             if "ik_frames_per_s" in jx:
                 out.append({
+                    "detail": case.get("group") == "frames",
                     "device": dev, "case": name, "figure": "IK frames/s (warm)",
                     "value": jx["ik_frames_per_s"], "ref_value": ref.get("ik_frames_per_s"),
                     "extrapolated": ref["stages"].get("ik", {}).get("extrapolated"),
@@ -200,18 +206,32 @@ def _fmt(v, digits=2) -> str:
     return str(v)
 
 
+def _x(v) -> str:
+    return "-" if v is None else f"{v:.2f}x"
+
+
+def _mem(r: dict) -> str:
+    if r.get("jx_peak_mb") is None:
+        return "-"
+    parts = [f"{r['jx_peak_mb']:,.0f}"]
+    for key in ("jx_warm_adds_mb", "ref_peak_mb"):
+        if r.get(key) is not None:
+            parts.append(f"+{r[key]:,.0f}")
+    return " / ".join(parts)
+
+
 def _cells(r: dict) -> list[str]:
     if "value" in r:
         return [r["device"], r["case"], r["figure"], "", _fmt(r["value"]), _fmt(r.get("ref_value")) + ("*" if r.get("extrapolated") else ""),
-                _fmt(_ratio(r.get("value"), r.get("ref_value"))) + "x" if r.get("ref_value") else "-"]
-    ratio = r.get("ratio")
+                _x(_ratio(r.get("value"), r.get("ref_value"))) if r.get("ref_value") else "-", "-", "-"]
     return [
         r["device"], r["case"], r["figure"], _fmt(r.get("cold_s")), _fmt(r.get("warm_s")),
-        _fmt(r.get("ref_s")) + ("*" if r.get("extrapolated") else ""), "-" if ratio is None else f"{ratio:.2f}x",
+        _fmt(r.get("ref_s")) + ("*" if r.get("extrapolated") else ""), _x(r.get("ratio")), _x(r.get("cpu_ratio")), _mem(r),
     ]
 
 
-HEADER = ["device", "case", "figure", "jaxskel cold s", "jaxskel warm s", "reference s", "ratio"]
+HEADER = ["device", "case", "figure", "jaxskel cold s", "jaxskel warm s", "reference s", "ratio", "CPU-time ratio",
+          "RSS MB: process peak / warm fit adds / reference adds"]
 
 
 def format_table(records: list[dict]) -> str:
@@ -231,9 +251,9 @@ def format_table(records: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def markdown(records: list[dict]) -> str:
-    """The same tables as Markdown (for the README)."""
-    body = [_cells(r) for r in rows(records)]
+def markdown(records: list[dict], compact: bool = True) -> str:
+    """The same tables as Markdown (for the README); ``compact`` drops per-stage rows of the scaling cases."""
+    body = [_cells(r) for r in rows(records) if not compact or r.get("detail", True)]
     lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     lines += ["| " + " | ".join(b) + " |" for b in body]
     lines += ["", "| target | measured | met |", "|---|---|---|"]

@@ -67,9 +67,13 @@ from ._trial import Trial
 
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
 
-#: Held around every stage that runs JAX code: XLA:CPU (jaxlib 0.10) was measured to hang
-#: for good when two executions of the joint solver run at once (two threads, or two forced
-#: host devices), so the pipeline overlaps only numpy/IO work with the device.
+#: Held around every stage that runs JAX code. Two XLA:CPU executions at once (two threads,
+#: or two forced host devices) hang for good (jaxlib 0.10, reproduced on the joint solver):
+#: batched LAPACK kernels (``lapack_dsyevd_ffi`` of the eigvalsh calls, SVD in the rigid
+#: fit) split their batch over XLA's intra-op pool with ``ParallelBatchMap`` and
+#: block a pool thread until the pieces finish; with two threads and two such calls, both
+#: wait for work queued behind the other. So the pipeline overlaps only numpy/IO work with
+#: the device, and more cores are used through processes (Dask workers).
 DEVICE_LOCK = threading.RLock()
 
 #: Recording suffixes :func:`discover_trials` picks up.
@@ -360,12 +364,36 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
     return done
 
 
-def _finish(work: _Work, bones: Mapping[str, BoneSpec], sig: str | None, keep: bool) -> TrialOutcome:
+def _refit(options: Mapping[str, Any]) -> Callable[[Any], Any]:
+    """The joint and skeleton stages of one prepared fit, unbatched (for merge confirmation)."""
     from ._fit import finish_fit
+    from ._topology import fit_topology, joint_costs
 
-    item = work.item
+    def refit(prep: Any) -> Any:
+        with prep.stage("joint costs"):
+            pairs = joint_costs(prep.trial, prep.segmentation, alpha=options["alpha"],
+                                max_frames=options["topology_frames"], method=options["method"])
+        with prep.stage("tree joints"):
+            topology = fit_topology(prep.trial, prep.segmentation, pairs, root=options["root"],
+                                    alpha=options["alpha"], alpha_tree=options["alpha_tree"], method=options["method"])
+        return finish_fit(prep, topology)
+
+    return refit
+
+
+def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
+            keep: bool) -> TrialOutcome:
+    from ._fit import _confirm_merges_and_refit, finish_fit
+
+    item, prep = work.item, work.prep
     with DEVICE_LOCK:
-        result = finish_fit(work.prep, work.topology)
+        result = finish_fit(prep, work.topology)
+        if options["confirm_merges"] and prep.label_mapping is not None and result.motion is not None:
+            # as fit_skeleton: the skeleton checks the label merges; a corrected merge is refitted
+            result = _confirm_merges_and_refit(
+                prep, result, _refit(options), min_run_s=0.5 if options["clean_data"] else None,
+                n_segments=options["n_segments"], seed=options["seed"], segment_kwargs=None,
+            )
     seconds = sum(result.timings.values())  # this trial's share of the work, not its latency
     row = summary_row(
         result, name=item.name, subject=item.subject, inputs=item.inputs_text(),
@@ -406,7 +434,7 @@ def run_local(
 
     def finish(work: _Work) -> None:
         try:
-            outcome = _finish(work, bones, signatures.get(work.item.index), keep_results)
+            outcome = _finish(work, options, bones, signatures.get(work.item.index), keep_results)
         except Exception as exc:  # noqa: BLE001
             outcome = _failed(work.item, exc, time.perf_counter() - work.t0)
         on_outcome(work.item, outcome)
@@ -468,6 +496,7 @@ def fit_batch(
     rigid: bool = True,
     ik: bool = True,
     seed: int = 0,
+    confirm_merges: bool = True,
     names: Sequence[str] | None = None,
     subjects: Sequence[str] | None = None,
     bones: Mapping[str, Any] | None = None,
@@ -497,7 +526,7 @@ def fit_batch(
     outdir
         Folder for one result file per trial (``<name>.h5``, sub-folders kept) and
         the summary table. Without it, nothing is written and results are returned.
-    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed
+    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges
         As in :func:`jaxskel.fit_skeleton`, the same for every trial.
     names, subjects
         Per-item names (result file names) and subject labels (summary column,
@@ -550,6 +579,7 @@ def fit_batch(
     options = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels, alpha=alpha,
         alpha_tree=alpha_tree, method=method, topology_frames=topology_frames, rigid=rigid, ik=ik, seed=seed,
+        confirm_merges=confirm_merges,
     )
     keep = (out is None) if keep_results is None else bool(keep_results)
 

@@ -244,7 +244,7 @@ def rigid_fit_fn(
     dtype = markers.dtype if jnp.issubdtype(markers.dtype, jnp.floating) else jnp.float64
     markers = markers.astype(dtype)
     joints = jnp.asarray(joints, dtype)
-    n_frames, n_markers = markers.shape[0], markers.shape[1]
+    n_markers = markers.shape[1]
     if n_markers != structure.n_markers or joints.shape[1:] != (structure.n_joints, 3):
         raise InputError(
             f"markers (F, {structure.n_markers}, 3) and joints (F, {structure.n_joints}, 3) must match the "
