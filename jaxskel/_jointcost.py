@@ -103,6 +103,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._errors import DegenerateMotionError, InputError
 from ._jointcost_lm import PairProblem, block_solve, inv3, levenberg_marquardt
+from ._linalg import generalised_eigvalsh
 
 __all__ = ["JointSolution", "solve_joint", "solve_joints"]
 
@@ -320,10 +321,14 @@ def _newton_decrement(problem: PairProblem, c, r):
 
 
 def _generalised_eigvalsh(a, b):
-    """Eigenvalues (ascending) of ``a v = lambda b v`` for symmetric a and positive definite b."""
-    lam_b, vec_b = jnp.linalg.eigh(b)
-    whiten = vec_b / jnp.sqrt(jnp.maximum(lam_b, 1e-14 * lam_b[-1]))[None, :]
-    return jnp.linalg.eigvalsh(whiten.T @ a @ whiten)
+    """Eigenvalues (ascending) of ``a v = lambda b v`` for symmetric a and positive semi-definite b.
+
+    Plain XLA (Cholesky + Jacobi, :mod:`jaxskel._linalg`): jaxlib's batched ``eigh`` kernel
+    deadlocked XLA:CPU's 2-thread pool when the two calls in :func:`_identifiability` ran
+    at once (native stacks: both pool threads in ``lapack_dsyevd_ffi`` ->
+    ``ParallelBatchMap``, each waiting for pieces queued behind the other).
+    """
+    return generalised_eigvalsh(a, b)
 
 
 def _identifiability(problem: PairProblem, c, r, noise_variance, norm):

@@ -187,10 +187,10 @@ def solve_chunked(
     takes the algebraic start, computed inside the chunk. Chunks go round-robin to
     ``devices`` (default: the default device) and are dispatched asynchronously, at
     most ``in_flight`` per device at a time, so several accelerators work at once. On
-    CPU devices one chunk runs at a time: two concurrent executions of this solver
-    hang XLA:CPU (jaxlib 0.10) for good, from two threads or two forced host devices
-    alike (native stacks: both intra-op threads in ``lapack_dsyevd_ffi`` ->
-    ``ParallelBatchMap``, each waiting for pieces queued behind the other).
+    CPU devices one chunk runs at a time: concurrent executions of the solver hung
+    XLA:CPU (jaxlib 0.10) for good while it still called LAPACK kernels (native stacks:
+    both intra-op threads in ``lapack_dsyevd_ffi`` -> ``ParallelBatchMap``); it has none
+    now (docs/design.md), and on a CPU a second execution has no spare core anyway.
 
     Returns the :class:`jaxskel.JointSolution` fields as numpy arrays with P rows.
     """
@@ -199,8 +199,7 @@ def solve_chunked(
     start = c0 is None
     devices = list(devices) if devices else [None]
     if any((d or jax.devices()[0]).platform == "cpu" for d in devices):
-        # Two XLA:CPU executions of this solver at once (two threads or two CPU devices)
-        # deadlock in batched LAPACK kernels (docstring): one at a time.
+        # XLA:CPU: one execution at a time (see the docstring).
         in_flight = 1
         devices_in_flight = 1
     else:
