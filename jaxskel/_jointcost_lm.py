@@ -48,6 +48,8 @@ monotonically.
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -182,13 +184,15 @@ class PairProblem(eqx.Module):
         return a, b, c_diag, g_c, g_r
 
 
-# Frame offsets from which a stuck frame may be reseeded (both directions). Spreading
-# over 1, 4 and 16 frames crosses a bad run of n frames in ~n/32 steps instead of n/2.
+# Frame offsets from which a stuck frame may be reseeded (both directions, one offset per
+# step in turn). Spreading over 1, 4 and 16 frames crosses a bad run of n frames in
+# ~3n/32 steps instead of n/2.
 _RESEED_OFFSETS = (1, 4, 16)
 
 
-def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3"]]]:
-    """``(o, shift)`` pairs: ``roll(c, o) + shift`` offers frame f the joint of frame f - o.
+def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3"], Any]]:
+    """``(o, shift, candidate)`` for o = +1, -1, +4, -4, +16, -16: ``candidate(c) = roll(c, o) + shift``
+    offers frame f the joint of frame f - o.
 
     The shift is the mean displacement of the markers present in both frames, so the
     candidate follows the body. Frames without such a neighbour (edges, no shared
@@ -206,7 +210,8 @@ def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3
             shift = jnp.sum(shared[..., None] * moved, axis=1) / jnp.maximum(count, 1.0)[:, None]
             source = index - signed
             usable = (count > 0) & (source >= 0) & (source < frames)
-            shifts.append((signed, jnp.where(usable[:, None], shift, 1e3)))
+            shift = jnp.where(usable[:, None], shift, 1e3)
+            shifts.append((signed, shift, lambda c, signed=signed, shift=shift: jnp.roll(c, signed, axis=0) + shift))
     return shifts
 
 
@@ -259,9 +264,15 @@ def levenberg_marquardt(
         take = moved <= kept
         c_trial = jnp.where(take[:, None], s.c + dc, s.c)
         cost_frames = jnp.minimum(moved, kept)
-        # a frame stuck on a wrong branch (mirror image) is reseeded from a neighbour
-        for signed, shift in neighbour_shifts:
-            candidate = jnp.roll(s.c, signed, axis=0) + shift
+        # A frame stuck on a wrong branch (mirror image) is reseeded from a neighbour:
+        # one distance (1, 4, 16 frames) per step in turn, both directions, so a step
+        # evaluates two candidates rather than six (the frame costs dominate a step).
+        turn = s.steps % len(_RESEED_OFFSETS)
+        for direction in (0, 1):
+            options = neighbour_shifts[direction::2]
+            candidate = options[0][2](s.c)
+            for k, (_, _, make) in enumerate(options[1:], start=1):
+                candidate = jnp.where(turn == k, make(s.c), candidate)
             candidate_cost = problem.frame_costs(candidate, r_trial)
             better = candidate_cost < cost_frames
             c_trial = jnp.where(better[:, None], candidate, c_trial)
