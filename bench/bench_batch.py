@@ -201,10 +201,15 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     args = p.parse_args(argv)
     result = run(args.quick, sizes=args.sizes, duration=args.duration, modes=tuple(args.modes),
                  batch_size=args.batch_size, workers=args.workers)
     print_table(result)
+    if args.json:
+        import json
+
+        args.json.write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
