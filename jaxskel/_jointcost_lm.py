@@ -39,8 +39,8 @@ the joint in its markers. A frame that lands there is stuck: on the synthetic hi
 12 of 1,200 frames (in runs of 2-6) sat 12-18 cm off with a 100x larger frame cost,
 and the pair's cost was 6.6x the true minimum. So each trial also offers every
 frame the joints of the frames 1, 4 or 16 (in turn, one distance per step) before and
-after it, moved by the mean displacement of the shared markers, and keeps whichever candidate is cheapest (the
-stepped, the kept, or a neighbour's). Good branches spread into a bad run from both
+after it, moved by the mean displacement of the shared markers, and keeps whichever
+candidate is cheapest (the stepped, the kept, or a neighbour's). Good branches spread into a bad run from both
 ends; with frames out of time order the candidates are merely never taken. Every
 choice is per frame at the same trial radii, so the cost still decreases
 monotonically.
