@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
 import os
 import threading
@@ -68,9 +69,9 @@ from ._trial import Trial
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
 
 #: Held around every stage that runs JAX code. Two XLA:CPU executions at once (two threads,
-#: or two forced host devices) hang for good (jaxlib 0.10, reproduced on the joint solver):
-#: batched LAPACK kernels (``lapack_dsyevd_ffi`` of the eigvalsh calls, SVD in the rigid
-#: fit) split their batch over XLA's intra-op pool with ``ParallelBatchMap`` and
+#: or two forced host devices) hung for good (jaxlib 0.10, reproduced on the joint solver
+#: before it became LAPACK-free): batched LAPACK kernels (the rigid fit's SVD and Cholesky
+#: still are) split their batch over XLA's intra-op pool with ``ParallelBatchMap`` and
 #: block a pool thread until the pieces finish; with two threads and two such calls, both
 #: wait for work queued behind the other. So the pipeline overlaps only numpy/IO work with
 #: the device, and more cores are used through processes (Dask workers).
@@ -364,34 +365,22 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
     return done
 
 
-def _refit(options: Mapping[str, Any]) -> Callable[[Any], Any]:
-    """The joint and skeleton stages of one prepared fit, unbatched (for merge confirmation)."""
-    from ._fit import finish_fit
-    from ._topology import fit_topology, joint_costs
-
-    def refit(prep: Any) -> Any:
-        with prep.stage("joint costs"):
-            pairs = joint_costs(prep.trial, prep.segmentation, alpha=options["alpha"],
-                                max_frames=options["topology_frames"], method=options["method"])
-        with prep.stage("tree joints"):
-            topology = fit_topology(prep.trial, prep.segmentation, pairs, root=options["root"],
-                                    alpha=options["alpha"], alpha_tree=options["alpha_tree"], method=options["method"])
-        return finish_fit(prep, topology)
-
-    return refit
-
-
 def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
             keep: bool) -> TrialOutcome:
-    from ._fit import _confirm_merges_and_refit, finish_fit
+    from ._fit import _confirm_merges_and_refit, finish_fit, fit_joints_and_skeleton
 
     item, prep = work.item, work.prep
     with DEVICE_LOCK:
         result = finish_fit(prep, work.topology)
         if options["confirm_merges"] and prep.label_mapping is not None and result.motion is not None:
             # as fit_skeleton: the skeleton checks the label merges; a corrected merge is refitted
+            # (the refit runs unbatched: joint and skeleton stages of this one trial)
+            refit = functools.partial(
+                fit_joints_and_skeleton, alpha=options["alpha"], alpha_tree=options["alpha_tree"],
+                method=options["method"], root=options["root"], topology_frames=options["topology_frames"],
+            )
             result = _confirm_merges_and_refit(
-                prep, result, _refit(options), min_run_s=0.5 if options["clean_data"] else None,
+                prep, result, refit, min_run_s=0.5 if options["clean_data"] else None,
                 n_segments=options["n_segments"], seed=options["seed"], segment_kwargs=None,
             )
     seconds = sum(result.timings.values())  # this trial's share of the work, not its latency

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import time
 import warnings
 from collections.abc import Sequence
@@ -292,17 +293,10 @@ def fit_skeleton(
         clean_kwargs=clean_kwargs, segment_kwargs=segment_kwargs, settings=settings, on_stage=on_stage,
     )
 
-    def joints_and_skeleton(prep: PreparedFit) -> SkeletonResult:
-        with prep.stage("joint costs", on_stage):
-            pairs = joint_costs(
-                prep.trial, prep.segmentation, alpha=alpha, max_frames=topology_frames, method=method
-            )
-        with prep.stage("tree joints", on_stage):
-            topology = fit_topology(
-                prep.trial, prep.segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
-            )
-        return finish_fit(prep, topology, segment_names=segment_names, on_stage=on_stage)
-
+    joints_and_skeleton = functools.partial(
+        fit_joints_and_skeleton, alpha=alpha, alpha_tree=alpha_tree, method=method, root=root,
+        topology_frames=topology_frames, segment_names=segment_names, on_stage=on_stage,
+    )
     result = joints_and_skeleton(prep)
     if confirm_merges and prep.label_mapping is not None and result.motion is not None:
         result = _confirm_merges_and_refit(
@@ -429,6 +423,28 @@ def _segment(work: Trial, n_segments: int | None, seed: int, segment_kwargs: dic
             "(see result.cleaning / the cleaning report for what was dropped)"
         )
     return segment_markers(work, n_segments, seed=seed, **(segment_kwargs or {}))
+
+
+def fit_joints_and_skeleton(
+    prep: PreparedFit,
+    *,
+    alpha: float,
+    alpha_tree: float | str,
+    method: str,
+    root: int | str | None,
+    topology_frames: int,
+    segment_names: Sequence[str] | None = None,
+    on_stage: Any = None,
+) -> SkeletonResult:
+    """The stages of :func:`fit_skeleton` after segmentation, for one prepared fit:
+    all-pairs joint costs, MST + tree joints on all frames, then :func:`finish_fit`."""
+    with prep.stage("joint costs", on_stage):
+        pairs = joint_costs(prep.trial, prep.segmentation, alpha=alpha, max_frames=topology_frames, method=method)
+    with prep.stage("tree joints", on_stage):
+        topology = fit_topology(
+            prep.trial, prep.segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
+        )
+    return finish_fit(prep, topology, segment_names=segment_names, on_stage=on_stage)
 
 
 def _confirm_merges_and_refit(

@@ -820,20 +820,9 @@ def _ik_input(
 
 
 def _host_relative(q: np.ndarray, parent: np.ndarray) -> np.ndarray:
-    """Relative rotations (..., S, 4) of global ones, on the host (numpy)."""
-    qp = np.where((parent >= 0)[:, None], q[..., np.maximum(parent, 0), :], np.asarray(_IDENTITY))
-    pw, px, py, pz = qp[..., 0], -qp[..., 1], -qp[..., 2], -qp[..., 3]  # conj(qp)
-    qw, qx, qy, qz = (q[..., k] for k in range(4))
-    out = np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-    return np.where(out[..., :1] < 0, -out, out)
+    """:func:`_relative_rotations` of (N, S, 4) host arrays, with non-negative ``w``."""
+    rel = np.asarray(jax.vmap(_relative_rotations, (0, None))(jnp.asarray(q), jnp.asarray(parent)))
+    return np.where(rel[..., :1] < 0, -rel, rel)
 
 
 def _interpolated(
@@ -971,7 +960,6 @@ def inverse_kinematics(
                 q_start.reshape(n, n_seg, 4)[rows], prior2.reshape(n, n_seg, 4)[rows], pw, **kw,
             )
             merge(rows, again, np.ones(rows.size, bool))
-            sol["done"][rows] = again["done"]
             steps[rows] += again["num_steps"]
 
     # Fitted markers back in the input's marker order (NaN for markers not on the skeleton).

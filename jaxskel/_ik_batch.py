@@ -320,11 +320,6 @@ def _smul(s, m):
     )
 
 
-def _mtmul(a, b):
-    """General ``a^T b``."""
-    return tuple(a[i] * b[j] + a[3 + i] * b[3 + j] + a[6 + i] * b[6 + j] for i in range(3) for j in range(3))
-
-
 def _sinv(s):
     """Inverse of symmetric positive-definite 3x3 blocks (adjugate over determinant)."""
     a, b, c, d, e, f = s

@@ -320,17 +320,6 @@ def _newton_decrement(problem: PairProblem, c, r):
     return jnp.sum(g_c * step_c) + jnp.sum(g_r * step_r)
 
 
-def _generalised_eigvalsh(a, b):
-    """Eigenvalues (ascending) of ``a v = lambda b v`` for symmetric a and positive semi-definite b.
-
-    Plain XLA (Cholesky + Jacobi, :mod:`jaxskel._linalg`): jaxlib's batched ``eigh`` kernel
-    deadlocked XLA:CPU's 2-thread pool when the two calls in :func:`_identifiability` ran
-    at once (native stacks: both pool threads in ``lapack_dsyevd_ffi`` ->
-    ``ParallelBatchMap``, each waiting for pieces queued behind the other).
-    """
-    return generalised_eigvalsh(a, b)
-
-
 def _identifiability(problem: PairProblem, c, r, noise_variance, norm):
     """(weakest signal-to-noise ratio, undetermined dims, uncertainty in metres).
 
@@ -362,13 +351,16 @@ def _identifiability(problem: PairProblem, c, r, noise_variance, norm):
     schur = jnp.where(pair, schur, 0.0) + jnp.diag(jnp.where(valid_m, 0.0, 1e12 * noise_fill))
     schur, noise = 0.5 * (schur + schur.T), 0.5 * (noise + noise.T)
 
-    snr = _generalised_eigvalsh(schur, noise)
+    # Plain XLA (Cholesky + Jacobi, jaxskel._linalg), not jnp.linalg.eigh: these two
+    # independent problems ran concurrently as LAPACK kernels and deadlocked XLA:CPU's
+    # 2-thread pool (both threads in lapack_dsyevd_ffi -> ParallelBatchMap).
+    snr = generalised_eigvalsh(schur, noise)
     undetermined = jnp.sum(snr < _UNDETERMINED_SNR).astype(jnp.int32)
 
     frames = jnp.maximum(jnp.sum(valid_f), 1)
     metric = jnp.einsum("fik,fil->kl", disp, disp) / frames
     # largest RMS displacement^2 per unit rise of the (scaled) cost: eig of (metric, schur)
-    spread = _generalised_eigvalsh(metric, schur)[-1]
+    spread = generalised_eigvalsh(metric, schur)[-1]
     uncertainty = jnp.sqrt(jnp.maximum(spread, 0.0) * sigma2 * norm)
     return snr[0], undetermined, uncertainty
 

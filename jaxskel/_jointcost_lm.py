@@ -48,7 +48,7 @@ monotonically.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -190,8 +190,8 @@ class PairProblem(eqx.Module):
 _RESEED_OFFSETS = (1, 4, 16)
 
 
-def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3"], Any]]:
-    """``(o, shift, candidate)`` for o = +1, -1, +4, -4, +16, -16: ``candidate(c) = roll(c, o) + shift``
+def _neighbour_candidates(problem: PairProblem) -> list[Callable[[Float[Array, "F 3"]], Float[Array, "F 3"]]]:
+    """Candidate makers for o = +1, -1, +4, -4, +16, -16: ``candidate(c) = roll(c, o) + shift``
     offers frame f the joint of frame f - o.
 
     The shift is the mean displacement of the markers present in both frames, so the
@@ -201,7 +201,7 @@ def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3
     present = (problem.beta > 0).astype(problem.markers.dtype)
     frames = problem.markers.shape[0]
     index = jnp.arange(frames)
-    shifts = []
+    candidates = []
     for offset in _RESEED_OFFSETS:
         for signed in (offset, -offset):
             shared = present * jnp.roll(present, signed, axis=0)
@@ -211,8 +211,8 @@ def _neighbour_shifts(problem: PairProblem) -> list[tuple[int, Float[Array, "F 3
             source = index - signed
             usable = (count > 0) & (source >= 0) & (source < frames)
             shift = jnp.where(usable[:, None], shift, 1e3)
-            shifts.append((signed, shift, lambda c, signed=signed, shift=shift: jnp.roll(c, signed, axis=0) + shift))
-    return shifts
+            candidates.append(lambda c, signed=signed, shift=shift: jnp.roll(c, signed, axis=0) + shift)
+    return candidates
 
 
 class _LMState(eqx.Module):
@@ -244,7 +244,7 @@ def levenberg_marquardt(
     """
     dtype = c0.dtype
     tiny = jnp.finfo(dtype).tiny
-    neighbour_shifts = _neighbour_shifts(problem)
+    neighbour_candidates = _neighbour_candidates(problem)
 
     def body(s: _LMState) -> _LMState:
         a, b, c_diag, g_c, g_r = problem.blocks(s.c, s.r, curvature="positive")
@@ -269,9 +269,9 @@ def levenberg_marquardt(
         # evaluates two candidates rather than six (the frame costs dominate a step).
         turn = s.steps % len(_RESEED_OFFSETS)
         for direction in (0, 1):
-            options = neighbour_shifts[direction::2]
-            candidate = options[0][2](s.c)
-            for k, (_, _, make) in enumerate(options[1:], start=1):
+            options = neighbour_candidates[direction::2]
+            candidate = options[0](s.c)
+            for k, make in enumerate(options[1:], start=1):
                 candidate = jnp.where(turn == k, make(s.c), candidate)
             candidate_cost = problem.frame_costs(candidate, r_trial)
             better = candidate_cost < cost_frames

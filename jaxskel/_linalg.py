@@ -45,24 +45,30 @@ def cholesky(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
     return jax.lax.fori_loop(0, n, column, jnp.zeros_like(a))
 
 
+def _forward_substitute(low: Float[Array, "n n"], b: Float[Array, "n *m"]) -> Float[Array, "n *m"]:
+    """``L^-1 b`` for lower-triangular ``L`` (row by row)."""
+    b = jnp.asarray(b, dtype=low.dtype)
+    index = jnp.arange(low.shape[-1])
+
+    def row(i, y):
+        coef = jnp.where(index < i, low[i], 0.0)
+        return y.at[i].set((b[i] - jnp.tensordot(coef, y, axes=1)) / low[i, i])
+
+    return jax.lax.fori_loop(0, low.shape[-1], row, jnp.zeros_like(b))
+
+
 def spd_solve(a: Float[Array, "n n"], b: Float[Array, "n *m"]) -> Float[Array, "n *m"]:
     """Solve ``a x = b`` for symmetric positive-definite ``a`` by Cholesky and two triangular sweeps."""
     low = cholesky(a)
-    b = jnp.asarray(b, dtype=low.dtype)
     n = low.shape[-1]
     index = jnp.arange(n)
-
-    def forward(i, y):  # L y = b
-        row = jnp.where(index < i, low[i], 0.0)
-        return y.at[i].set((b[i] - jnp.tensordot(row, y, axes=1)) / low[i, i])
 
     def backward(k, x):  # L^T x = y, from the last row up
         i = n - 1 - k
         col = jnp.where(index > i, low[:, i], 0.0)
         return x.at[i].set((x[i] - jnp.tensordot(col, x, axes=1)) / low[i, i])
 
-    y = jax.lax.fori_loop(0, n, forward, jnp.zeros_like(b))
-    return jax.lax.fori_loop(0, n, backward, y)
+    return jax.lax.fori_loop(0, n, backward, _forward_substitute(low, b))  # L y = b, then L^T x = y
 
 
 def eigvalsh(a: Float[Array, "n n"], sweeps: int | None = None) -> Float[Array, " n"]:
@@ -101,18 +107,6 @@ def eigvalsh(a: Float[Array, "n n"], sweeps: int | None = None) -> Float[Array, 
 
     m = jax.lax.fori_loop(0, sweeps * int(pairs.shape[0]), rotate, 0.5 * (a + a.T))
     return jnp.sort(jnp.diagonal(m))
-
-
-def _forward_substitute(low: Float[Array, "n n"], b: Float[Array, "n m"]) -> Float[Array, "n m"]:
-    """``L^-1 b`` for lower-triangular ``L`` (row by row)."""
-    n = low.shape[-1]
-    index = jnp.arange(n)
-
-    def row(i, y):
-        coef = jnp.where(index < i, low[i], 0.0)
-        return y.at[i].set((b[i] - coef @ y) / low[i, i])
-
-    return jax.lax.fori_loop(0, n, row, jnp.zeros_like(b))
 
 
 def generalised_eigvalsh(
