@@ -895,6 +895,11 @@ def inverse_kinematics(
     """
     from ._ik_batch import batch_model, solve
 
+    for name, value in (("max_steps", max_steps), ("batch_size", batch_size)):
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"{name} must be a positive int, got {value!r}")
+    if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
+        raise InputError(f"threads must be a positive int or None (the CPU count, at most 4), got {threads!r}")
     x, mask, trial_rate = _ik_input(skeleton, data)
     lead = x.shape[:-3]
     n_trials = int(np.prod(lead)) if lead else 1

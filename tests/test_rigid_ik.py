@@ -324,6 +324,9 @@ def test_ik_rejects_wrong_markers(seed0):
         inverse_kinematics(sk, trial.drop_markers(["LASI"]))
     with pytest.raises(InputError, match="markers"):
         inverse_kinematics(sk, trial.positions[:, :-1])
+    for bad in (dict(batch_size=0), dict(max_steps=-1), dict(threads=0)):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            inverse_kinematics(sk, trial, **bad)
 
 
 def test_ik_gradients_match_finite_differences():
