@@ -156,6 +156,11 @@ def _check_segmentation(trial: Trial, seg: Segmentation) -> np.ndarray:
 
 
 # ----------------------------------------------------------------- chunked batched solve
+def _uses_cpu(devices: Sequence[Any] | None) -> bool:
+    """Whether any of ``devices`` (``None``: the default device) is a CPU."""
+    return any((d or jax.devices()[0]).platform == "cpu" for d in (devices or [None]))
+
+
 @functools.partial(jax.jit, static_argnames=("settings", "start"))
 def _chunk_solve(xs, ms, alpha, c0, r0, controls, *, settings, start):
     """One fixed-shape chunk: (optionally) the algebraic start, then the vmapped solve."""
@@ -197,8 +202,9 @@ def solve_chunked(
     n = len(xs)
     settings, controls = _settings(method, max_steps, None, None, xs.dtype)
     start = c0 is None
+    on_cpu = _uses_cpu(devices)
     devices = list(devices) if devices else [None]
-    if any((d or jax.devices()[0]).platform == "cpu" for d in devices):
+    if on_cpu:
         # XLA:CPU: one execution at a time (see the docstring).
         in_flight = 1
         devices_in_flight = 1
@@ -466,7 +472,7 @@ def tree_problem(
     alpha: float = 1e-5,
     alpha_tree: float | str = "auto",
     method: str = "lm",
-    max_steps: int = 200,
+    max_steps: int = 500,
 ) -> TreeProblem:
     """MST, rooting and the padded warm-started arrays of :func:`fit_topology` (no solve)."""
     seg = _check_segmentation(trial, segmentation)
@@ -520,11 +526,16 @@ def solve_trees(
 ) -> list[dict[str, np.ndarray]]:
     """Solve the tree joints of several trials together (shared chunks per padded shape).
 
-    With one problem the chunk is the joint count's bucket (4, 8, 16, ...), as
-    :func:`fit_topology` always did. With several, joints of the same padded shape
-    are pooled, sorted by their first-pass step count (slow joints together, so a
-    chunk's fast joints do not idle while its slowest one iterates) and solved in
-    chunks of ``chunk`` joints (default: the bucket of the largest tree).
+    Joints of the same padded shape are pooled, sorted by their first-pass step
+    count and solved ``chunk`` joints per vmapped call. A vmapped while loop runs
+    until its slowest joint has converged, and every step costs as much for a
+    finished joint as for a running one, so a chunk costs its size times its
+    slowest joint's steps. On a CPU, where one joint's frames already fill the
+    cores, the default chunk is therefore 1 and each joint pays only its own steps
+    (full body, 120 s: 38 s with the tree's 14 joints in one chunk -> 8 s; hinge
+    joints need 60-260 steps, ball joints 7-13). On accelerators, which need the
+    width, it is the bucket of the largest tree, slow joints sorted together. A
+    joint's solution does not depend on the chunking.
     """
     out: list[dict[str, np.ndarray]] = [{} for _ in problems]
     groups: dict[tuple, list[int]] = {}
@@ -535,12 +546,13 @@ def solve_trees(
         owner = np.concatenate([np.full(len(problems[i].edges), i) for i in members])
         row = np.concatenate([np.arange(len(problems[i].edges)) for i in members])
         steps = np.concatenate([problems[i].first_steps for i in members])
-        order = np.argsort(-steps, kind="stable") if len(members) > 1 else np.arange(len(owner))
+        order = np.argsort(-steps, kind="stable")
 
         def pooled(name: str, members=members, order=order) -> np.ndarray:
             return np.concatenate([getattr(problems[i], name) for i in members])[order]
 
-        size = chunk or bucket_size(max(len(problems[i].edges) for i in members), minimum=4, steps_per_octave=1)
+        widest = bucket_size(max(len(problems[i].edges) for i in members), minimum=4, steps_per_octave=1)
+        size = chunk or (1 if _uses_cpu(devices) else widest)
         first = problems[members[0]]
         sol = solve_chunked(
             pooled("xs"), pooled("ms"), pooled("alphas"), method=first.method, max_steps=first.max_steps,
@@ -601,7 +613,7 @@ def fit_topology(
     alpha: float = 1e-5,
     alpha_tree: float | str = "auto",
     method: str = "lm",
-    max_steps: int = 200,
+    max_steps: int = 500,
     topology_frames: int = 300,
 ) -> Topology:
     """MST topology and the tree's joints solved on every frame.
