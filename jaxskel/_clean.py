@@ -93,6 +93,20 @@ class CleaningReport:
     __str__ = summary
 
 
+def _nanmedian_last(a: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(a, axis=-1)`` for short last axes, ~20x faster.
+
+    numpy's nanmedian goes through masked arrays per call; sorting sends NaNs to
+    the end, so the median of the n finite values sits at (n - 1) // 2 and n // 2.
+    All-NaN rows give NaN, as numpy's does.
+    """
+    ordered = np.sort(a, axis=-1)
+    n = np.sum(~np.isnan(a), axis=-1)
+    lo = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(ordered, (n // 2)[..., None].clip(max=a.shape[-1] - 1), axis=-1)[..., 0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
 def _running_median_deviation(x: np.ndarray, present: np.ndarray, half: int) -> np.ndarray:
     """Distance of each sample from a robust, velocity-compensated local prediction.
 
@@ -117,14 +131,12 @@ def _running_median_deviation(x: np.ndarray, present: np.ndarray, half: int) -> 
         return np.lib.stride_tricks.sliding_window_view(np.pad(a, pad, constant_values=np.nan), width, axis=0)
 
     k = np.arange(-half, half + 1, dtype=float)
-    with warnings.catch_warnings():
-        # All-NaN windows (inside gaps) give NaN medians; those frames are absent anyway.
-        warnings.simplefilter("ignore", RuntimeWarning)
-        v = np.nan_to_num(np.nanmedian(windows(vel), axis=-1))  # (F, 3)
-        a = np.nan_to_num(np.nanmedian(windows(acc), axis=-1))
-        pred = windows(xp) - k * v[..., None] - 0.5 * k * k * a[..., None]
-        pred[..., half] = np.nan  # a sample does not predict itself
-        med = np.nanmedian(pred, axis=-1)
+    # All-NaN windows (inside gaps) give NaN medians; those frames are absent anyway.
+    v = np.nan_to_num(_nanmedian_last(windows(vel)))  # (F, 3)
+    a = np.nan_to_num(_nanmedian_last(windows(acc)))
+    pred = windows(xp) - k * v[..., None] - 0.5 * k * k * a[..., None]
+    pred[..., half] = np.nan  # a sample does not predict itself
+    med = _nanmedian_last(pred)
     # One-sided windows (run ends) extrapolate and are not judged here; run ends
     # next to gaps are trimmed anyway.
     pw = windows(xp)[:, 0, :]

@@ -29,8 +29,8 @@ skeleton, in two steps.
 
    Structure: given the offsets the frames are independent (a batch of small IK
    problems); given the poses the problem is *linear* in the offsets. So the solve
-   alternates an IK sweep over all frames (vmapped Levenberg-Marquardt, warm-started
-   from the previous sweep) with the exact linear least-squares solution for the
+   alternates an IK sweep over all frames (the batched solver of
+   :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact linear least-squares solution for the
    offsets (normal equations assembled from per-frame rotation products). Each sweep
    cannot increase the cost (up to the weak IK pose prior); the loop stops when a sweep lowers it by less than
    ``rtol`` relative. Frames whose marker RMS after the first sweep is an outlier
@@ -53,7 +53,6 @@ of the recording, with the absolute margin keeping it quiet on nearly noise-free
 from __future__ import annotations
 
 import dataclasses
-import functools
 import types
 import warnings
 from collections.abc import Mapping, Sequence
@@ -70,15 +69,13 @@ from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
     RESULT_MAX_STEPS,
     RESULT_SUCCESSFUL,
-    FrameSolution,
     IKModel,
+    _host_relative,
     _poses,
-    _relative_rotations,
-    ik_initial_guess,
     ik_model,
     kinematic_chain,
-    solve_frame,
 )
+from ._ik_batch import batch_model, solve
 from ._padding import bucket_size
 from ._trial import Trial
 
@@ -315,102 +312,83 @@ def _offset_system(
     return normal.reshape(3 * n_u, 3 * n_u), rhs.reshape(-1), jnp.sum(obs_weight * jnp.sum(target * target, -1))
 
 
-def _refine_model(
-    marker_theta: Float[Array, "M 3"],
-    joint_theta: Float[Array, "J 3"],
-    obs_segment: Int[Array, " N"],
-    obs_weight: Float[Array, " N"],
-    chain,
-) -> IKModel:
-    """IK model whose "markers" are the real markers followed by the joint centres.
-
-    A joint centre is a point fixed on its parent segment at the joint's parent-side
-    offset, so the same solver fits both (joints carry the weight ``JOINT_WEIGHT^2``).
-    Sweeps start from the previous sweep's poses, never from a Horn guess (``levels=0``).
-    """
-    n_seg = chain.parent.shape[0]
-    return IKModel(
-        joint_offsets=jnp.stack([joint_theta, jnp.zeros_like(joint_theta)], axis=1),
-        marker_offsets=jnp.concatenate([marker_theta, joint_theta], axis=0),
-        marker_segment=obs_segment,
-        marker_weight=obs_weight,
-        chain=chain,
-        segment_markers=jnp.full((n_seg, 1), -1, obs_segment.dtype),
-        levels=0,
-    )
-
-
-def _sweep(model, obs, present, t0, q0, prior_weight, max_steps):
-    """One IK pass over all frames (vmapped LM), each frame from its own start pose."""
-
-    def one(args):
-        x, m, t, q = args
-        prior = _relative_rotations(q, model.chain.parent)
-        return solve_frame(x, m, model, t, q, prior, prior_weight, max_steps=max_steps)
-
-    return jax.lax.map(one, (obs, present, t0, q0), batch_size=128)
-
-
 @jax.jit
-def _initial_poses(model, x, mask):
-    """Horn-initialised IK of every frame with the Procrustes offsets."""
-    n_seg = model.chain.parent.shape[0]
-    identity = jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], x.dtype), (n_seg, 1))
-    t0, q0 = jax.vmap(ik_initial_guess, (0, 0, None, None))(x, mask, model, identity)
-    return t0, q0
+def _offset_update(rotations, root_position, obs, weight, coef, unknown_segment, theta_old):
+    """Exact least-squares offsets for fixed poses, and the cost they reach."""
+    normal, rhs, const = _offset_system(quat_to_matrix(rotations), root_position, obs, weight, coef, unknown_segment)
+    # A whisper of ridge towards the current offsets keeps directions that no frame
+    # constrains (a joint with nothing below it ever seen) where they are.
+    ridge = 1e-10 * jnp.trace(normal) / normal.shape[0]
+    eye = jnp.eye(normal.shape[0], dtype=obs.dtype)
+    theta = jnp.linalg.solve(normal + ridge * eye, rhs + ridge * theta_old)
+    cost = (const - 2 * theta @ rhs + theta @ normal @ theta) / jnp.maximum(jnp.sum(weight), 1.0)
+    return theta, cost
 
 
-@functools.partial(jax.jit, static_argnames=("max_sweeps", "max_steps"))
 def _refine(
-    marker_theta, joint_theta, obs, present, obs_segment, obs_base_weight, edges, coef,
-    unknown_segment, t0, q0, prior_weight, rtol, refine, *, max_sweeps, max_steps,
-):
-    """Alternate IK sweeps and exact offset updates (module docstring); jit-compiled.
+    marker_theta: np.ndarray,
+    joint_theta: np.ndarray,
+    obs: np.ndarray,
+    present: np.ndarray,
+    obs_segment: np.ndarray,
+    obs_base_weight: np.ndarray,
+    edges: np.ndarray,
+    coef: np.ndarray,
+    unknown_segment: np.ndarray,
+    start: dict[str, np.ndarray] | None,
+    prior_weight: np.ndarray,
+    rtol: float,
+    refine: bool,
+    *,
+    max_sweeps: int,
+    max_steps: int,
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], int, list[float], bool]:
+    """Alternate IK sweeps and exact offset updates (module docstring).
 
-    Every loop iteration runs one IK sweep; while refining it is followed by the
-    offset update, and once the cost stops dropping (or ``refine`` is False) a last
-    sweep fits the poses to the final offsets. Returns the offsets, that sweep's
-    per-frame solutions, the number of offset updates, the cost history (mean weighted
-    squared residual after each update) and whether the tolerance was met.
+    A sweep is the batched IK of :mod:`jaxskel._ik_batch` over all fitting frames, the
+    joint centres entering as extra "markers" fixed on their parent segment at the
+    joint's offset (weight ``JOINT_WEIGHT^2``); it starts from ``start`` (the previous
+    sweep's poses, the prior their relative rotations) or, for ``None``, from the
+    batched Horn alignment. With ``refine`` each sweep is followed by the offset update
+    until the cost stops dropping; a last sweep then fits the poses to the final
+    offsets. Returns the offsets, that sweep's solution, the number of offset updates,
+    the cost history (mean weighted squared residual after each update) and whether
+    the tolerance was met.
     """
-    chain = kinematic_chain(edges, obs.dtype)
-    weight = present * obs_base_weight
     n_m = marker_theta.shape[0]
-    dtype = obs.dtype
+    parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
+    weight = present * obs_base_weight
+    args = tuple(jnp.asarray(a) for a in (obs, weight, coef, unknown_segment))
 
-    def body(carry):
-        m_th, j_th, sol, k, cost_prev, history, stop, converged, _ = carry
-        model = _refine_model(m_th, j_th, obs_segment, obs_base_weight, chain)
-        sol = _sweep(model, obs, present, sol.root_position, sol.rotations, prior_weight, max_steps)
-        normal, rhs, const = _offset_system(
-            quat_to_matrix(sol.rotations), sol.root_position, obs, weight, coef, unknown_segment
+    def sweep(m_th, j_th, sol):
+        model = batch_model(
+            edges, np.stack([j_th, np.zeros_like(j_th)], axis=1), np.concatenate([m_th, j_th]), obs_segment,
+            obs_base_weight,
         )
-        theta_old = jnp.concatenate([m_th, j_th], axis=0).reshape(-1)
-        # A whisper of ridge towards the current offsets keeps directions that no frame
-        # constrains (a joint with nothing below it ever seen) where they are.
-        ridge = 1e-10 * jnp.trace(normal) / normal.shape[0]
-        eye = jnp.eye(normal.shape[0], dtype=dtype)
-        theta = jnp.linalg.solve(normal + ridge * eye, rhs + ridge * theta_old)
-        cost = (const - 2 * theta @ rhs + theta @ normal @ theta) / jnp.maximum(jnp.sum(weight), 1.0)
-        theta = jnp.where(stop, theta_old, theta).reshape(-1, 3)
-        met = (k > 0) & ((cost_prev - cost) <= rtol * cost_prev)
-        history = jnp.where(stop, history, history.at[k].set(cost))
-        return (
-            theta[:n_m], theta[n_m:], sol, k + jnp.where(stop, 0, 1), jnp.where(stop, cost_prev, cost),
-            history, stop | met | (k + 1 >= max_sweeps), converged | met, stop,
+        if sol is None:
+            return solve(model, obs, present > 0, None, None, None, prior_weight, max_steps=max_steps)
+        q = sol["rotations"]
+        return solve(
+            model, obs, present > 0, sol["root_position"], q, _host_relative(q, parent), prior_weight,
+            max_steps=max_steps,
         )
 
-    frames = obs.shape[0]
-    sol0 = FrameSolution(
-        root_position=t0, rotations=q0, num_steps=jnp.zeros(frames, jnp.int32),
-        result=jnp.zeros(frames, jnp.int32), rms=jnp.zeros(frames, dtype),
-    )
-    init = (
-        marker_theta, joint_theta, sol0, jnp.asarray(0), jnp.asarray(jnp.inf, dtype),
-        jnp.full((max_sweeps,), jnp.nan, dtype), ~refine, jnp.asarray(False), jnp.asarray(False),
-    )
-    m_th, j_th, sol, sweeps, _, history, _, converged, _ = jax.lax.while_loop(lambda c: ~c[8], body, init)
-    return m_th, j_th, sol, sweeps, history, converged
+    m_th, j_th = marker_theta, joint_theta
+    sol = sweep(m_th, j_th, start)
+    history: list[float] = []
+    met = False
+    while refine and len(history) < max_sweeps and not met:
+        theta_old = np.concatenate([m_th, j_th]).reshape(-1)
+        theta, cost = _offset_update(
+            jnp.asarray(sol["rotations"]), jnp.asarray(sol["root_position"]), *args, jnp.asarray(theta_old)
+        )
+        cost = float(cost)
+        met = bool(history) and (history[-1] - cost) <= rtol * history[-1]
+        history.append(cost)
+        theta = np.asarray(theta).reshape(-1, 3)
+        m_th, j_th = theta[:n_m], theta[n_m:]
+        sol = sweep(m_th, j_th, sol)
+    return m_th, j_th, sol, len(history), history, met
 
 
 # ------------------------------------------------------------------- fit_rigid
@@ -601,35 +579,27 @@ def fit_rigid(
     coef[n_used:, n_used:] = chain_np[edges[:, 0]] + np.eye(n_joints)
     unknown_segment = np.concatenate([useg, edges[:, 0]]).astype(np.int32)
 
-    horn_model = ik_model(edges, np.stack([joint_theta, np.zeros_like(joint_theta)], 1),
-                          np.concatenate([marker_theta, joint_theta]), obs_segment,
-                          marker_weight=base_weight)
-    t0, q0 = _initial_poses(horn_model, jnp.asarray(obs), jnp.asarray(present > 0))
-    prior_w = jnp.full((n_seg,), prior_weight)
+    prior_w = np.full((n_seg,), float(prior_weight))
     common_args = dict(
-        obs_segment=jnp.asarray(obs_segment), obs_base_weight=jnp.asarray(base_weight),
-        edges=jnp.asarray(edges, jnp.int32), coef=jnp.asarray(coef), unknown_segment=jnp.asarray(unknown_segment),
-        prior_weight=prior_w, rtol=rtol, max_steps=max_steps,
+        obs_segment=obs_segment, obs_base_weight=base_weight, edges=np.asarray(edges), coef=coef,
+        unknown_segment=unknown_segment, prior_weight=prior_w, rtol=rtol, max_steps=max_steps,
+        max_sweeps=max_sweeps,
     )
     # First pass without offset updates: per-frame residuals to reject non-rigid frames.
-    _, _, first, _, _, _ = _refine(
-        jnp.asarray(marker_theta), jnp.asarray(joint_theta), jnp.asarray(obs), jnp.asarray(present),
-        t0=t0, q0=q0, max_sweeps=max_sweeps, refine=jnp.asarray(False), **common_args,
-    )
-    rms = np.asarray(first.rms)
+    _, _, first, _, _, _ = _refine(marker_theta, joint_theta, obs, present, start=None, refine=False, **common_args)
+    rms = first["rms"]
     med = np.median(rms[real])
     mad = 1.4826 * np.median(np.abs(rms[real] - med))
     keep = real & (rms <= med + 5.0 * max(mad, 1e-4 * med))
     m_th, j_th, sol, sweeps, history, done = _refine(
-        jnp.asarray(marker_theta), jnp.asarray(joint_theta), jnp.asarray(obs), jnp.asarray(present * keep[:, None]),
-        t0=first.root_position, q0=first.rotations, max_sweeps=max_sweeps, refine=jnp.asarray(refine), **common_args,
+        marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=refine, **common_args
     )
     m_th, j_th = np.asarray(m_th), np.asarray(j_th)
-    rot = np.asarray(quat_to_matrix(sol.rotations))  # (F, S, 3, 3)
+    rot = np.asarray(quat_to_matrix(sol["rotations"]))  # (F, S, 3, 3)
 
     # Per-marker residuals over the kept frames with the final offsets and poses.
     trans, _ = jax.vmap(_poses, (0, 0, None, None))(
-        sol.root_position, jnp.asarray(rot), jnp.stack([jnp.asarray(j_th), jnp.zeros_like(jnp.asarray(j_th))], 1),
+        sol["root_position"], jnp.asarray(rot), jnp.stack([jnp.asarray(j_th), jnp.zeros_like(jnp.asarray(j_th))], 1),
         kinematic_chain(jnp.asarray(edges)),
     )
     trans = np.asarray(trans)
@@ -677,8 +647,8 @@ def fit_rigid(
     for (a, b), s, length in zip(bones, bone_seg, bone_lengths):
         segment_lengths[s] = np.nanmax([segment_lengths[s], length])
 
-    steps = np.asarray(sol.num_steps)[keep]
-    results = np.asarray(sol.result)[keep]
+    steps = sol["num_steps"][keep]
+    results = np.where(sol["done"], RESULT_SUCCESSFUL, RESULT_MAX_STEPS)[keep]
     n_sweeps = int(sweeps)
     converged = bool(done) or not refine
     if not converged:
@@ -697,7 +667,7 @@ def fit_rigid(
     diagnostics = {
         "sweeps": n_sweeps,
         "result": RESULT_SUCCESSFUL if converged else RESULT_MAX_STEPS,
-        "cost_history": [float(c) for c in np.asarray(history)[:n_sweeps]],
+        "cost_history": history,
         "residual_rms": residual_rms,
         "frames_used": int(keep.sum()),
         "frames_rejected": int((real & ~keep).sum()),
