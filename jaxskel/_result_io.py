@@ -9,8 +9,9 @@ Schema version 1 (documented in the README, "Result file"):
   identity otherwise, -1 dropped), ``used_labels`` (M',) the markers after
   cleaning/merging, ``positions`` (F, M', 3) the cleaned positions (NaN missing);
 * ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``;
-* ``/topology``: ``joint_cost`` (S, S) (inf = infeasible), ``edges`` (J, 2)
-  parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
+* ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
+  ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
+  (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
   (n, 2) pairs with ``infeasible_reason`` (n,) str;
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded;
@@ -128,6 +129,8 @@ def save_result(
 
             g = f.create_group("topology")
             _put(g, "joint_cost", topo.pair_costs.cost)
+            _put(g, "joint_objective", topo.pair_costs.objective)
+            g.attrs["joint_cost_weight"] = topo.pair_costs.weight
             _put(g, "edges", topo.edges.reshape(-1, 2))
             _put(g, "root", np.int64(topo.root))
             _put(g, "roots", np.asarray(topo.roots, dtype=int))
