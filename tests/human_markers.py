@@ -1,0 +1,106 @@
+"""Body parts of the 41-marker Vicon set of CMU and HDM05, and their .asf skeletons.
+
+Used to judge a fitted tree on real recordings without ground-truth segment
+labels: a segment is named after the body part most of its markers sit on, and an
+edge is plausible when it joins parts that are adjacent in a human skeleton.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+#: Marker -> body part. Markers placed on a joint (knee, ankle, elbow, wrist,
+#: shoulder) move rigidly with either neighbour; they only name a segment that has
+#: no other marker.
+PART: dict[str, str] = {"C7": "thorax", "T10": "thorax", "CLAV": "thorax", "STRN": "thorax", "RBAC": "thorax"}
+ON_JOINT = {"KNE", "ANK", "ELB", "WRA", "WRB", "SHO"}
+for _s in "LR":
+    PART.update({
+        f"{_s}FHD": "head", f"{_s}BHD": "head", f"{_s}SHO": f"{_s} shoulder",
+        f"{_s}UPA": f"{_s} upper arm", f"{_s}ELB": f"{_s} upper arm", f"{_s}FRM": f"{_s} forearm",
+        f"{_s}WRA": f"{_s} forearm", f"{_s}WRB": f"{_s} forearm", f"{_s}FIN": f"{_s} hand",
+        f"{_s}FWT": "pelvis", f"{_s}BWT": "pelvis", f"{_s}THI": f"{_s} thigh", f"{_s}KNE": f"{_s} thigh",
+        f"{_s}SHN": f"{_s} shank", f"{_s}ANK": f"{_s} shank", f"{_s}HEE": f"{_s} foot",
+        f"{_s}TOE": f"{_s} foot", f"{_s}MT5": f"{_s} foot",
+    })
+
+ADJACENT: set[frozenset[str]] = {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))}
+for _s in "LR":
+    ADJACENT |= {frozenset(p) for p in (
+        ("thorax", f"{_s} shoulder"), (f"{_s} shoulder", f"{_s} upper arm"), ("thorax", f"{_s} upper arm"),
+        (f"{_s} upper arm", f"{_s} forearm"), (f"{_s} forearm", f"{_s} hand"), ("pelvis", f"{_s} thigh"),
+        (f"{_s} thigh", f"{_s} shank"), (f"{_s} shank", f"{_s} foot"),
+    )}
+
+
+def segment_parts(labels, marker_segment) -> list[str | None]:
+    """Body part of each segment: the majority of its off-joint markers (else of all)."""
+    names = [lab.split(":")[-1] for lab in labels]
+    parts = []
+    for s in range(int(np.max(marker_segment)) + 1):
+        mine = [n for n, g in zip(names, marker_segment) if g == s and n in PART]
+        votes = [PART[n] for n in mine if n[1:] not in ON_JOINT] or [PART[n] for n in mine]
+        parts.append(max(sorted(set(votes)), key=votes.count) if votes else None)
+    return parts
+
+
+def implausible_edges(labels, marker_segment, edges) -> list[tuple[str, str]]:
+    """Tree edges joining body parts that are not adjacent in a human skeleton."""
+    parts = segment_parts(labels, marker_segment)
+    bad = []
+    for a, b in np.asarray(edges).reshape(-1, 2).tolist():
+        pa, pb = parts[a], parts[b]
+        if pa is not None and pb is not None and pa != pb and frozenset((pa, pb)) not in ADJACENT:
+            bad.append((pa, pb))
+    return bad
+
+
+def asf_bone_lengths(path: Path) -> dict[str, float]:
+    """Bone name -> length in metres from an Acclaim .asf file (``:units length`` aware:
+    a length ``L`` is ``L / unit`` inches)."""
+    unit = 1.0
+    lengths: dict[str, float] = {}
+    name = None
+    section = None
+    for line in Path(path).read_text().splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0].startswith(":"):
+            section = words[0]
+            continue
+        if section == ":units" and words[0] == "length":
+            unit = float(words[1])
+        elif section == ":bonedata":
+            if words[0] == "name":
+                name = words[1]
+            elif words[0] == "length" and name is not None:
+                lengths[name] = float(words[1]) / unit * 0.0254
+    return lengths
+
+
+def bone_lengths_by_part(result) -> dict[str, float]:
+    """Fitted length of each limb bone named by its body parts, e.g. ``"L thigh"`` is
+    the distance between the pelvis-thigh and thigh-shank joints."""
+    sk = result.skeleton
+    parts = segment_parts(result.trial.labels, result.segmentation.marker_segment)
+    neighbours = {"thigh": ("pelvis", "shank"), "shank": ("thigh", "foot"),
+                  "upper arm": (("thorax", "shoulder"), "forearm"), "forearm": ("upper arm", "hand")}
+    out = {}
+    for b, (i, j) in enumerate(np.asarray(sk.bones).tolist()):
+        seg = int(sk.bone_segment[b])
+        part = parts[seg]
+        if part is None or part[2:] not in neighbours:
+            continue
+        side = part[0]
+        ends = set()
+        for joint in (i, j):
+            other = [int(v) for v in sk.edges[joint] if int(v) != seg][0]
+            ends.add((parts[other] or "").replace(f"{side} ", ""))
+        proximal, distal = neighbours[part[2:]]
+        proximal = proximal if isinstance(proximal, tuple) else (proximal,)
+        if ends & set(proximal) and distal in ends:
+            out[part] = float(sk.bone_lengths[b])
+    return out
