@@ -30,8 +30,8 @@ skeleton, in two steps.
    Structure: given the offsets the frames are independent (a batch of small IK
    problems); given the poses the problem is *linear* in the offsets. So the solve
    alternates an IK sweep over all frames (the batched solver of
-   :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact linear least-squares solution for the
-   offsets (normal equations assembled from per-frame rotation products). Each sweep
+   :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact
+   linear least-squares solution for the offsets (normal equations assembled from per-frame rotation products). Each sweep
    cannot increase the cost (up to the weak IK pose prior); the loop stops when a sweep lowers it by less than
    ``rtol`` relative. Frames whose marker RMS after the first sweep is an outlier
    (above median + 5 MAD: swaps, jumps, a marker knocked loose) are left out. At most

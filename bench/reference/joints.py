@@ -211,7 +211,8 @@ def all_pair_costs(
     max_nfev: int = 100,
     pairs: list[tuple[int, int]] | None = None,
 ) -> tuple[np.ndarray, dict, np.ndarray]:
-    """Joint cost (S, S) of every segment pair on ``max_frames`` evenly spaced frames.
+    """Joint cost (S, S) of every segment pair on ``max_frames`` evenly spaced frames:
+    Kirk's Q divided by the fraction of residual degrees of freedom (the MST weight).
 
     Pairs with fewer than four markers or fewer than ten frames with three of them
     present are infeasible (``inf``). ``pairs`` restricts the solve to a subset (for
@@ -229,7 +230,12 @@ def all_pair_costs(
             continue
         fit = solve_pair(xf[:, idx], mf[:, idx], alpha, max_nfev=max_nfev)
         fits[(a, b)] = fit
-        cost[a, b] = cost[b, a] = fit.cost
+        # MST weight: the cost per residual degree of freedom, Q / f with
+        # f = sum_t (K_t - 3) / sum_t K_t over frames with >= 3 markers (as jaxskel).
+        k_t = mf[:, idx].sum(1)
+        k_t = k_t[k_t >= MIN_FRAME_MARKERS]
+        f = (k_t - 3).sum() / max(k_t.sum(), 1)
+        cost[a, b] = cost[b, a] = fit.cost / f if f > 0 else np.inf
     return cost, fits, frames
 
 
