@@ -442,9 +442,9 @@ def joint_costs(
     never move relative to each other: the largest cross-segment distance std-dev
     is below ``exercised_ratio`` times the noise floor of the segmentation.
 
-    The candidate pairs are solved in fixed chunks of ``PAIR_CHUNK`` pairs (``PAIR_CHUNK_CPU``
-    on CPU)
-    (:func:`solve_chunked`), each starting from the closed-form algebraic fit.
+    The candidate pairs are solved in fixed chunks of ``PAIR_CHUNK`` pairs
+    (``PAIR_CHUNK_CPU`` on CPU; :func:`solve_chunked`), each starting from the
+    closed-form algebraic fit.
     """
     problem = all_pairs_problem(
         trial, segmentation, alpha=alpha, max_frames=max_frames, method=method, max_steps=max_steps,
