@@ -357,8 +357,7 @@ def _refine(
     """
     n_m = marker_theta.shape[0]
     parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
-    weight = present * obs_base_weight
-    args = tuple(jnp.asarray(a) for a in (obs, weight, coef, unknown_segment))
+    observed = present > 0
 
     def sweep(m_th, j_th, sol):
         model = batch_model(
@@ -366,10 +365,10 @@ def _refine(
             obs_base_weight,
         )
         if sol is None:
-            return solve(model, obs, present > 0, None, None, None, prior_weight, max_steps=max_steps)
+            return solve(model, obs, observed, None, None, None, prior_weight, max_steps=max_steps)
         q = sol["rotations"]
         return solve(
-            model, obs, present > 0, sol["root_position"], q, _host_relative(q, parent), prior_weight,
+            model, obs, observed, sol["root_position"], q, _host_relative(q, parent), prior_weight,
             max_steps=max_steps,
         )
 
@@ -377,6 +376,8 @@ def _refine(
     sol = sweep(m_th, j_th, start)
     history: list[float] = []
     met = False
+    if refine:  # the offset system's fixed inputs, on the device once
+        args = tuple(jnp.asarray(a) for a in (obs, present * obs_base_weight, coef, unknown_segment))
     while refine and len(history) < max_sweeps and not met:
         theta_old = np.concatenate([m_th, j_th]).reshape(-1)
         theta, cost = _offset_update(
@@ -594,7 +595,6 @@ def fit_rigid(
     m_th, j_th, sol, sweeps, history, done = _refine(
         marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=refine, **common_args
     )
-    m_th, j_th = np.asarray(m_th), np.asarray(j_th)
     rot = np.asarray(quat_to_matrix(sol["rotations"]))  # (F, S, 3, 3)
 
     # Per-marker residuals over the kept frames with the final offsets and poses.
