@@ -58,6 +58,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
         sp.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
         sp.add_argument("--method", choices=["lm", "ncg"], default="lm", help="joint solver (default: lm)")
+        sp.add_argument("--hinge-centres", choices=["limb_plane", "prior"], default="limb_plane",
+                        help="a hinge's centre along its axis: in the plane of its neighbouring joints "
+                             "(default) or where the distance prior puts it (the paper)")
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
         sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
@@ -138,6 +141,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         ik=not args.no_rigid,
         seed=args.seed,
         progress=not quiet,
+        hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
     )
     extra_groups = {}
     if args.parameterize:

@@ -32,6 +32,9 @@ from ._trial import Trial
 
 __all__ = ["SkeletonResult", "fit_skeleton", "check_units", "prepare_fit", "finish_fit", "PreparedFit"]
 
+#: Placements of a hinge's centre along its axis (``fit_skeleton(hinge_centres=...)``).
+HINGE_CENTRES = ("limb_plane", "prior")
+
 
 def check_units(trial: Trial) -> None:
     """Raise :class:`InputError` when positions are clearly not in metres.
@@ -237,6 +240,7 @@ def fit_skeleton(
     clean_kwargs: dict[str, Any] | None = None,
     segment_kwargs: dict[str, Any] | None = None,
     confirm_merges: bool = True,
+    hinge_centres: str = "limb_plane",
 ) -> SkeletonResult:
     """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
 
@@ -270,11 +274,19 @@ def fit_skeleton(
         After merging labels, check the merges against the fitted skeleton
         (:func:`jaxskel.confirm_merges`) and, if it corrects any, segment and fit
         again from the corrected merge. Needs ``rigid`` and ``ik``.
+    hinge_centres
+        Where the rigid skeleton puts a joint whose centre the markers leave free along
+        an axis (``topology.undetermined > 0``: knees, elbows): ``"limb_plane"`` (default)
+        in the plane of its neighbouring joints (:mod:`jaxskel._hinge_centres`), or
+        ``"prior"``: where the distance prior of the joint solve left it (the paper; it
+        pulls the centre out to the markers on the skin).
     """
+    if hinge_centres not in HINGE_CENTRES:
+        raise InputError(f"hinge_centres must be one of {HINGE_CENTRES}, got {hinge_centres!r}")
     settings = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
         alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
-        rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges,
+        rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges, hinge_centres=hinge_centres,
     )
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
@@ -502,8 +514,12 @@ def finish_fit(
         if prep.settings.get("rigid", True) and len(topology.edges):
             from ._rigid import fit_rigid
 
+            sliding = None
+            if prep.settings.get("hinge_centres", "limb_plane") == "limb_plane":
+                sliding = np.asarray(topology.undetermined) > 0
             skeleton = fit_rigid(
-                work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root
+                work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root,
+                sliding_joints=sliding,
             )
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:

@@ -65,6 +65,7 @@ from jaxtyping import Array, Float, Int
 
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._geometry import horn_align, quat_to_matrix
+from ._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
 from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
     RESULT_MAX_STEPS,
@@ -283,6 +284,79 @@ def _procrustes(
     return ref, rot, t, rms
 
 
+def _nearest_usable(usable: np.ndarray, frame: int) -> int:
+    """The usable frame nearest ``frame`` (``usable`` has at least one)."""
+    ok = np.flatnonzero(usable)
+    return int(ok[np.argmin(np.abs(ok - frame))])
+
+
+def _place_hinges(
+    sliding: Sequence[bool] | np.ndarray | None,
+    edges: np.ndarray,
+    members: list[np.ndarray],
+    seg_joints: list[np.ndarray],
+    ref: np.ndarray,
+    rot: np.ndarray,
+    gpa_rms: np.ndarray,
+    usable: np.ndarray,
+    alignable: np.ndarray,
+    js: np.ndarray,
+    jm: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Move sliding joints along their axes (:mod:`jaxskel._hinge_centres`), in place.
+
+    ``gpa_rms`` (S, P): each Procrustes point's scatter about its mean (neighbour weights).
+    Updates the Procrustes mean clouds ``ref`` (both segments' copies of the joint)
+    and the per-frame joint centres ``js`` the refinement is pinned to: frame f moves
+    along the axis seen in that frame (the parent's pose, else the child's, else the
+    nearest frame's). Returns the shifts (J,) and the parent-frame axes (J, 3; NaN for
+    joints not moved). A joint moves only if it turns as a hinge (``MAX_OFF_AXIS``) and
+    both segments were posed by Procrustes in at least 3 common frames.
+    """
+    n_joints = edges.shape[0]
+    shift = np.zeros(n_joints)
+    axis_parent = np.full((n_joints, 3), np.nan)
+    if sliding is None:
+        return shift, axis_parent
+    sliding = np.asarray(sliding, dtype=bool)
+    if sliding.shape != (n_joints,):
+        raise InputError(f"sliding_joints must be {n_joints} booleans (one per joint); got shape {sliding.shape}")
+
+    def slot(s: int, j: int) -> int:
+        return len(members[s]) + int(np.flatnonzero(seg_joints[s] == j)[0])
+
+    points = np.stack([[ref[edges[j, i], slot(edges[j, i], j)] for i in (0, 1)] for j in range(n_joints)])
+    axes = np.zeros((n_joints, 2, 3))
+    movable = np.zeros(n_joints, bool)
+    for j in np.flatnonzero(sliding):
+        p, c = int(edges[j, 0]), int(edges[j, 1])
+        both = usable[:, p] & usable[:, c]
+        if alignable[p] and alignable[c] and both.sum() >= 3 and np.isfinite(points[j]).all():
+            a_p, a_c, off_axis = hinge_axes(rot[:, p], rot[:, c], both.astype(float))
+            axes[j] = a_p, a_c
+            movable[j] = off_axis < MAX_OFF_AXIS
+    points = np.nan_to_num(points)
+    # Neighbours weighted by how steadily their centre sits on its segments (Procrustes
+    # scatter, floor 1 mm): a wandering wrist or ankle centre moves the elbow or knee less.
+    scatter = np.array([np.mean([gpa_rms[edges[j, i], slot(edges[j, i], j)] for i in (0, 1)]) for j in range(n_joints)])
+    weights = 1.0 / (np.nan_to_num(scatter, nan=1.0) ** 2 + 1e-6)
+    shift = hinge_shifts(edges, movable, points, axes, weights)
+    frames = np.arange(js.shape[0])
+    for j in np.flatnonzero(movable):
+        p, c = int(edges[j, 0]), int(edges[j, 1])
+        ref[p, slot(p, j)] += shift[j] * axes[j, 0]
+        ref[c, slot(c, j)] += shift[j] * axes[j, 1]
+        world = np.where(
+            usable[:, p, None], axes[j, 0] @ rot[:, p], np.where(usable[:, c, None], axes[j, 1] @ rot[:, c], np.nan)
+        )
+        seen = np.isfinite(world[:, 0])
+        world = np.stack([np.interp(frames, frames[seen], world[seen, d]) for d in range(3)], axis=1)
+        world /= np.linalg.norm(world, axis=1, keepdims=True)
+        js[:, j] = np.where(jm[:, j, None], js[:, j] + shift[j] * world, js[:, j])
+        axis_parent[j] = axes[j, 0]
+    return shift, axis_parent
+
+
 # ------------------------------------------------------------------ refinement
 def _offset_system(
     rot: Float[Array, "F S 3 3"],
@@ -408,6 +482,7 @@ def fit_rigid(
     prior_weight: float = DEFAULT_PRIOR_WEIGHT,
     nonrigid_factor: float = 3.0,
     labels: Sequence[str] | None = None,
+    sliding_joints: Sequence[bool] | np.ndarray | None = None,
 ) -> Skeleton:
     """Fit a rigid skeleton to markers and joint centres (Kirk et al. 2005, §3.3).
 
@@ -440,6 +515,12 @@ def fit_rigid(
         Flag markers with residual RMS above this multiple of the median (and 1 mm above it).
     labels
         Marker labels when ``trial`` is an array tuple (default ``M0, M1, ...``).
+    sliding_joints
+        (J,) booleans: joints whose centre the markers leave free along an axis (hinges;
+        :func:`jaxskel.fit_skeleton` passes ``topology.undetermined > 0``). Each is moved
+        along its axis into the plane of its neighbouring joints before the refinement
+        (:mod:`jaxskel._hinge_centres`); the shifts are in ``diagnostics["hinge_shift"]``.
+        Default: none moved (the input centres' placement, i.e. the distance prior's).
 
     Returns
     -------
@@ -516,7 +597,7 @@ def fit_rigid(
     first = np.argmax(weights.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref0 = pts[first, np.arange(n_seg)]
     refw0 = weights[first, np.arange(n_seg)]
-    ref, gpa_rot, _, gpa_rms = (np.asarray(a) for a in _procrustes(pts, weights, ref0, refw0))
+    ref, gpa_rot, _, gpa_rms = (np.array(a) for a in _procrustes(pts, weights, ref0, refw0))
     covered = weights.sum(axis=0) > 0  # (S, P)
     alignable = np.zeros(n_seg, bool)
     for s in range(n_seg):
@@ -525,14 +606,17 @@ def fit_rigid(
             sv = np.linalg.svd(cloud - cloud.mean(axis=0), compute_uv=False)
             alignable[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
 
+    hinge_shift, hinge_axis = _place_hinges(
+        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, js, jm
+    )
+
     # Local frames: world-aligned at a common frame (or the segment's nearest usable one).
     common = int(np.argmax(usable.sum(axis=1)))
     local = np.full((n_seg, width, 3), np.nan)
     for s in range(n_seg):
         n_pts = len(members[s]) + len(seg_joints[s])
         if alignable[s]:
-            ok_frames = np.flatnonzero(usable[:, s])
-            f = ok_frames[np.argmin(np.abs(ok_frames - common))]
+            f = _nearest_usable(usable[:, s], common)
             cloud = ref[s, :n_pts] @ gpa_rot[f, s]  # rows: R^T p (world-aligned axes)
             cloud[~covered[s, :n_pts]] = np.nan
         else:
@@ -628,6 +712,12 @@ def fit_rigid(
     marker_rms[used] = marker_rms_used
     med_rms = np.nanmedian(marker_rms_used) if np.isfinite(marker_rms_used).any() else np.nan
     flagged = (marker_rms > nonrigid_factor * med_rms) & (marker_rms > med_rms + 1e-3)
+    # Hinge axes in the final parent frames (mean frame -> fitting-local -> rest-aligned).
+    hinge_axis_rest = np.full((n_joints, 3), np.nan)
+    for j in np.flatnonzero(np.isfinite(hinge_axis[:, 0])):
+        p = int(edges[j, 0])
+        local_axis = hinge_axis[j] @ gpa_rot[_nearest_usable(usable[:, p], common), p]
+        hinge_axis_rest[j] = r_rest[p] @ local_axis
     bones, bone_seg = [], []
     for s in range(n_seg):
         js_s = seg_joints[s]
@@ -676,6 +766,8 @@ def fit_rigid(
         "ik_steps_max": int(steps.max()) if steps.size else 0,
         "ik_failures": int((results != RESULT_SUCCESSFUL).sum()),
         "procrustes_segments": [int(s) for s in np.flatnonzero(alignable)],
+        "hinge_shift": [float(v) for v in hinge_shift],
+        "hinge_axis": hinge_axis_rest.tolist(),
         "procrustes_rms": [float(np.sqrt(np.mean(gpa_rms[s][covered[s]] ** 2))) if covered[s].any() else float("nan")
                            for s in range(n_seg)],
     }
