@@ -51,6 +51,7 @@ def _since(start) -> tuple[float, float]:
 def _jaxskel_stages(trial, upto: str) -> tuple[dict, dict, dict]:
     """Run the stages up to ``upto`` by their public functions; (outputs, wall s, cpu s)."""
     import jaxskel as js
+    from jaxskel._rigid import SOLVED_JOINT_WEIGHT
 
     order = list(STAGES)
     stop = order.index(upto)
@@ -74,7 +75,10 @@ def _jaxskel_stages(trial, upto: str) -> tuple[dict, dict, dict]:
     if stop >= 4:
         out["skeleton"] = sk = timed(
             "rigid",
-            lambda: js.fit_rigid(cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root),
+            lambda: js.fit_rigid(  # as fit_skeleton calls it
+                cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root,
+                sliding_joints=topo.undetermined > 0, joint_weight=SOLVED_JOINT_WEIGHT,
+            ),
         )
     if stop >= 5:
         out["motion"] = timed("ik", lambda: js.inverse_kinematics(sk, cleaned))

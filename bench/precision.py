@@ -40,6 +40,7 @@ __all__ = ["run_precision"]
 def _chain(trial):
     """The stages in fit_skeleton's order; (outputs, warm seconds) of the second of two runs."""
     import jaxskel as js
+    from jaxskel._rigid import SOLVED_JOINT_WEIGHT
 
     for _ in range(2):
         times, out = {}, {}
@@ -54,7 +55,10 @@ def _chain(trial):
         seg = timed("segment", lambda: js.segment_markers(cleaned, None, seed=0))
         pairs = timed("joint_costs", lambda: js.joint_costs(cleaned, seg, alpha=ALPHA, max_frames=TOPOLOGY_FRAMES))
         topo = timed("tree_joints", lambda: js.fit_topology(cleaned, seg, pairs, alpha=ALPHA))
-        sk = timed("rigid", lambda: js.fit_rigid(cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root))
+        sk = timed("rigid", lambda: js.fit_rigid(
+            cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root,
+            sliding_joints=topo.undetermined > 0, joint_weight=SOLVED_JOINT_WEIGHT,
+        ))
         motion = timed("ik", lambda: js.inverse_kinematics(sk, cleaned))
         out = {"trial": cleaned, "segmentation": seg, "pairs": pairs, "topology": topo, "skeleton": sk, "motion": motion}
     return out, times

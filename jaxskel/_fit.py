@@ -512,14 +512,14 @@ def finish_fit(
     skeleton = motion = None
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):
-            from ._rigid import fit_rigid
+            from ._rigid import SOLVED_JOINT_WEIGHT, fit_rigid
 
             sliding = None
             if prep.settings.get("hinge_centres", "limb_plane") == "limb_plane":
                 sliding = np.asarray(topology.undetermined) > 0
             skeleton = fit_rigid(
                 work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root,
-                sliding_joints=sliding,
+                sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT,
             )
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:

@@ -68,26 +68,27 @@ def test_hdm05_tree_is_a_human_skeleton(hdm_dg):
 
 
 def test_hdm05_limb_bones_against_asf(hdm_dg):
-    """All six limb bones with both joints in the tree are measured. Today: left thigh
-    +19 mm and left upper arm -6 mm (within the 2 cm target); the right thigh, both
-    shanks and the right upper arm are 5-15 cm off (joints of a 1.7 s take that are
-    barely exercised, markers on the joints). Asserted (a regression guard, not the
-    target): median difference under 6 cm, the sum of the six within 15 %, two bones
-    within 2 cm."""
+    """All six limb bones with both joints in the tree are measured. Today: left shank
+    +5 mm, both upper arms +11/+12 mm (within the 2 cm target), left thigh +33, right
+    shank +73, right thigh +122 mm (joints of a 1.7 s take that are barely exercised,
+    markers on the joints). With the paper's hinge placement and the joint centres
+    pinned like markers: +89, -5/-51, +20, +53, +149. Asserted (a regression guard, not
+    the target): median difference under 4 cm, the sum of the six within 15 %, three
+    bones within 2 cm."""
     bones = _compare(hdm_dg, DATA / "dynamic_clustering_hdm05" / "HDM_dg.asf")
     assert {"L thigh", "R thigh", "L shank", "R shank", "L upper arm", "R upper arm"} <= set(bones)
     fit, ref = np.array(list(bones.values())).T
-    assert np.median(np.abs(fit - ref)) < 0.06, bones
+    assert np.median(np.abs(fit - ref)) < 0.04, bones
     assert abs(fit.sum() - ref.sum()) < 0.15 * ref.sum()
-    assert sum(np.abs(fit - ref) < 0.02) >= 2
+    assert sum(np.abs(fit - ref) < 0.02) >= 3
 
 
 def test_cmu_legs_with_given_segment_count():
     """CMU subject 02, 15 s, 15 segments given: the legs and pelvis form the human tree
     (pelvis - thigh - shank - foot on both sides). Q / f topology weight: with the
     paper's raw Q the left thigh was jointed to the right shoulder. The arms are not
-    checked (the head is jointed to both upper arms); the thighs are ~11 cm long, the
-    right shank within 1 cm of the .asf tibia (printed)."""
+    checked (the head is jointed to both upper arms); the thighs are 8-9 cm long, the
+    right shank within 1 cm of the .asf tibia, the left 2.6 cm short (printed)."""
     result = _fit("nimblephysics/cmu_02_05.c3d", 15)
     parts = segment_parts(result.trial.labels, result.segmentation.marker_segment)
     legs = {"pelvis"} | {f"{s} {limb}" for s in "LR" for limb in ("thigh", "shank", "foot")}
