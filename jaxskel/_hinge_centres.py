@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-__all__ = ["MAX_BONE_COSINE", "MAX_OFF_AXIS", "hinge_axes", "hinge_shifts"]
+__all__ = ["MAX_BONE_COSINE", "MAX_OFF_AXIS", "MIN_ROTATION_RMS", "hinge_axes", "hinge_shifts"]
 
 #: A joint slides only if it turns as a hinge: the share of its rotation about the other
 #: axes (:func:`hinge_axes`) below 0.12, i.e. RMS angle about them under ~35 % of the
@@ -57,6 +57,11 @@ MAX_OFF_AXIS = 0.12
 #: the bone line, not the plane, fixes the centre, and the prior's placement is kept.
 MAX_BONE_COSINE = 0.5
 
+#: A joint must turn by at least 5 degrees RMS (about its main axis) for its axis to be
+#: taken: below that the direction of least rotation is set by noise, and a pair that
+#: does not move at all (every direction "least rotated") would look like a perfect hinge.
+MIN_ROTATION_RMS = float(np.deg2rad(5.0))
+
 #: Ridge on the shifts (m^2 per m^2 of equation residual); see the module docstring.
 _RIDGE = 1e-6
 
@@ -72,7 +77,8 @@ def hinge_axes(
     off_axis)``: ``off_axis`` is the share of the rotation about the other axes,
     ``(1 - s_1) / (1 - s_3)`` with ``s_1 >= s_2 >= s_3`` the singular values of
     ``mean_f Q_f`` (``1 - s ~ mean theta^2 / 2`` about each principal direction): ~0 for
-    a hinge, ~1 for a ball joint exercised alike about all axes.
+    a hinge, ~1 for a ball joint exercised alike about all axes, and ``inf`` for a pair
+    that turns less than :data:`MIN_ROTATION_RMS` (no axis to speak of).
     """
     w = np.asarray(weight, dtype=float)
     q = np.einsum("fij,fkj->fik", rot_child, rot_parent)  # R_c R_p^T
@@ -80,7 +86,8 @@ def hinge_axes(
     _, sv, vt = np.linalg.svd(q_mean)
     a_p = vt[0]
     a_c = q_mean @ a_p
-    off_axis = (1.0 - sv[0]) / max(1.0 - sv[2], 1e-12)
+    turned = 1.0 - sv[2]
+    off_axis = (1.0 - sv[0]) / turned if turned >= 0.5 * MIN_ROTATION_RMS**2 else np.inf
     return a_p, a_c / max(np.linalg.norm(a_c), 1e-12), float(off_axis)
 
 

@@ -39,6 +39,15 @@ def test_hinge_axis_is_recovered_in_both_frames():
     assert hinge_axes(rot_p, scrambled, np.ones(400))[2] > 1e-3
 
 
+def test_a_pair_that_barely_turns_has_no_axis():
+    rng = np.random.default_rng(2)
+    n = 300
+    rot_p, rot_c = _relative_motion(rng, rng.normal(0.0, 0.01, (n, 3)) + [0.0, 0.0, 0.02])
+    assert hinge_axes(rot_p, rot_c, np.ones(n))[2] == np.inf
+    rot_p, rot_c = _relative_motion(rng, np.outer(rng.uniform(-0.3, 0.3, n), [0.0, 1.0, 0.0]))
+    assert hinge_axes(rot_p, rot_c, np.ones(n))[2] < MAX_OFF_AXIS
+
+
 def test_two_axis_joint_is_not_a_hinge():
     rng = np.random.default_rng(1)
     n = 400
