@@ -91,6 +91,16 @@ def hinge_axes(
     return a_p, a_c / max(np.linalg.norm(a_c), 1e-12), float(off_axis)
 
 
+def _neighbours(edges: np.ndarray, j: int):
+    """``(side, k, k_side)`` for every other joint k on joint j's parent (side 0) and child
+    (side 1) segment; ``k_side`` says whether that segment is k's parent (0) or child (1)."""
+    for side in (0, 1):
+        seg = edges[j, side]
+        for k in np.flatnonzero((edges[:, 0] == seg) | (edges[:, 1] == seg)):
+            if k != j:
+                yield side, int(k), 0 if edges[k, 0] == seg else 1
+
+
 def hinge_shifts(
     edges: Int[np.ndarray, "J 2"],
     slide: Bool[np.ndarray, " J"],
@@ -110,33 +120,24 @@ def hinge_shifts(
     slide = np.array(slide, dtype=bool)
     n_joints = edges.shape[0]
     for j in np.flatnonzero(slide):
-        for side in (0, 1):
-            seg = edges[j, side]
-            for k in np.flatnonzero((edges[:, 0] == seg) | (edges[:, 1] == seg)):
-                bone = joint_points[k, 0 if edges[k, 0] == seg else 1] - joint_points[j, side]
-                length = np.linalg.norm(bone)
-                if k != j and length > 0 and abs(axes[j, side] @ bone) > MAX_BONE_COSINE * length:
-                    slide[j] = False
+        for side, k, k_side in _neighbours(edges, j):
+            bone = joint_points[k, k_side] - joint_points[j, side]
+            length = np.linalg.norm(bone)
+            if length > 0 and abs(axes[j, side] @ bone) > MAX_BONE_COSINE * length:
+                slide[j] = False
     unknown = np.flatnonzero(slide)
-    if unknown.size == 0:
-        return np.zeros(n_joints)
     column = {int(j): i for i, j in enumerate(unknown)}
     rows, rhs = [], []
     for j in unknown:
-        for side in (0, 1):
-            seg = edges[j, side]
+        for side, k, k_side in _neighbours(edges, j):
             a_j = axes[j, side]
-            for k in np.flatnonzero((edges[:, 0] == seg) | (edges[:, 1] == seg)):
-                if k == j:
-                    continue
-                k_side = 0 if edges[k, 0] == seg else 1
-                row = np.zeros(unknown.size)
-                row[column[int(j)]] = 1.0
-                if slide[k]:
-                    row[column[int(k)]] -= float(a_j @ axes[k, k_side])
-                w = 1.0 if weights is None else float(np.sqrt(weights[k]))
-                rows.append(w * row)
-                rhs.append(w * float(a_j @ (joint_points[k, k_side] - joint_points[j, side])))
+            row = np.zeros(unknown.size)
+            row[column[int(j)]] = 1.0
+            if slide[k]:
+                row[column[int(k)]] -= float(a_j @ axes[k, k_side])
+            w = 1.0 if weights is None else float(np.sqrt(weights[k]))
+            rows.append(w * row)
+            rhs.append(w * float(a_j @ (joint_points[k, k_side] - joint_points[j, side])))
     shifts = np.zeros(n_joints)
     if not rows:
         return shifts

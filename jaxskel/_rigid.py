@@ -34,9 +34,9 @@ skeleton, in two steps.
    problems); given the poses the problem is *linear* in the offsets. So the solve
    alternates an IK sweep over all frames (the batched solver of
    :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact
-   linear least-squares solution for the offsets (normal equations assembled from per-frame rotation products). Each sweep
-   cannot increase the cost (up to the weak IK pose prior); the loop stops when a sweep lowers it by less than
-   ``rtol`` relative. Frames whose marker RMS after the first sweep is an outlier
+   linear least-squares solution for the offsets (normal equations assembled from
+   per-frame rotation products). Each sweep cannot increase the cost (up to the weak IK
+   pose prior); the loop stops when a sweep lowers it by less than ``rtol`` relative. Frames whose marker RMS after the first sweep is an outlier
    (above median + 5 MAD: swaps, jumps, a marker knocked loose) are left out. At most
    ``max_frames`` frames, spread evenly over the trial, are used.
 
@@ -323,15 +323,16 @@ def _place_hinges(
     alignable: np.ndarray,
     js: np.ndarray,
     jm: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Move sliding joints along their axes (:mod:`jaxskel._hinge_centres`), in place.
 
     ``gpa_rms`` (S, P): each Procrustes point's scatter about its mean (neighbour weights).
     Updates the Procrustes mean clouds ``ref`` (both segments' copies of the joint)
     and the per-frame joint centres ``js`` the refinement is pinned to: frame f moves
     along the axis seen in that frame (the parent's pose, else the child's, else the
-    nearest frame's). Returns the shifts (J,) and the parent-frame axes (J, 3; NaN for
-    joints not moved). A joint moves only if it turns as a hinge (``MAX_OFF_AXIS``) and
+    nearest frame's). Returns the shifts (J,), the parent-frame axes (J, 3; NaN for
+    joints not moved) and each joint's weight as a neighbour (J,; inverse variance of
+    its centre, for :func:`_replace_hinges`). A joint moves only if it turns as a hinge (``MAX_OFF_AXIS``) and
     both segments were posed by Procrustes in at least 3 common frames.
     """
     n_joints = edges.shape[0]
