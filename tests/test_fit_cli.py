@@ -1,5 +1,6 @@
 """fit_skeleton end to end: result object, HDF5 result file, command line, errors."""
 
+import json
 import subprocess
 import sys
 
@@ -49,6 +50,10 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     assert int(back.topology.root) == fitted.topology.root
     assert (back.markers.segment >= 0).all() and back.markers.physical.tolist() == list(range(9))
     assert "joints_steps" in back.diagnostics.keys()
+    # the rigid stage's diagnostics come back as JSON (they were once written as a repr)
+    rigid = json.loads(back.diagnostics.attrs["rigid"])
+    assert rigid["sweeps"] == fitted.skeleton.diagnostics["sweeps"]
+    assert len(rigid["hinge_shift"]) == len(fitted.edges)
     # a reader of a newer schema refuses with a clear message
     with h5py.File(path, "a") as f:
         f.attrs["schema_version"] = 99
