@@ -36,9 +36,10 @@ skeleton, in two steps.
    :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact
    linear least-squares solution for the offsets (normal equations assembled from
    per-frame rotation products). Each sweep cannot increase the cost (up to the weak IK
-   pose prior); the loop stops when a sweep lowers it by less than ``rtol`` relative. Frames whose marker RMS after the first sweep is an outlier
-   (above median + 5 MAD: swaps, jumps, a marker knocked loose) are left out. At most
-   ``max_frames`` frames, spread evenly over the trial, are used.
+   pose prior); the loop stops when a sweep lowers it by less than ``rtol`` relative.
+   Frames whose marker RMS after the first sweep is an outlier (above median + 5 MAD:
+   swaps, jumps, a marker knocked loose) are left out. At most ``max_frames`` frames,
+   spread evenly over the trial, are used.
 
 Segment frames (the convention of :class:`Skeleton`, :class:`jaxskel.Motion` and the BVH
 export): the origin of a segment is its proximal joint (the joint to its parent), so
@@ -332,8 +333,9 @@ def _place_hinges(
     along the axis seen in that frame (the parent's pose, else the child's, else the
     nearest frame's). Returns the shifts (J,), the parent-frame axes (J, 3; NaN for
     joints not moved) and each joint's weight as a neighbour (J,; inverse variance of
-    its centre, for :func:`_replace_hinges`). A joint moves only if it turns as a hinge (``MAX_OFF_AXIS``) and
-    both segments were posed by Procrustes in at least 3 common frames.
+    its centre, for :func:`_replace_hinges`). A joint moves only if it turns as a hinge
+    (``MAX_OFF_AXIS``) and both segments were posed by Procrustes in at least 3 common
+    frames.
     """
     n_joints = edges.shape[0]
     shift = np.zeros(n_joints)
@@ -494,8 +496,8 @@ def _refine(
     65 sweeps), so each offset update is over-relaxed, ``theta + omega (theta* - theta)``,
     with ``omega`` growing by 1.25 per sweep up to 5 and back to 1 whenever the cost rose
     (measured: 65 -> 27 sweeps, identical skeleton). Returns the offsets, that sweep's
-    solution, the number of offset updates, the cost history (mean weighted squared residual after each update) and whether
-    the tolerance was met.
+    solution, the number of offset updates, the cost history (mean weighted squared
+    residual after each update) and whether the tolerance was met.
     """
     n_m = marker_theta.shape[0]
     parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
@@ -776,7 +778,9 @@ def fit_rigid(
         again = _replace_hinges(edges, useg, m_th, j_th, rot, keep, weights_of_joints, hinge_axis_local)
         if np.any(again):
             hinge_shift = hinge_shift + again
-            _, _, sol, _, _, _ = _refine(m_th, j_th, obs, present * keep[:, None], start=sol, refine=False, **common_args)
+            _, _, sol, _, _, _ = _refine(
+                m_th, j_th, obs, present * keep[:, None], start=sol, refine=False, **common_args
+            )
             rot = np.asarray(quat_to_matrix(sol["rotations"]))
 
     # Per-marker residuals over the kept frames with the final offsets and poses.

@@ -104,6 +104,16 @@ def joint_rmse(result, trial, truth, j, positions):
     return tj, float(np.sqrt(np.mean(np.sum(err[ok] ** 2, -1))))
 
 
+def bone_length_errors(result, truth, joint_of):
+    """Relative error of every fitted bone against the true bone between the same joints
+    (``joint_of``: fitted joint -> true joint)."""
+    true_length = {frozenset(map(int, b)): length for b, length in zip(truth.bones, truth.bone_lengths)}
+    return [
+        abs(length / true_length[frozenset((joint_of[int(a)], joint_of[int(b)]))] - 1)
+        for (a, b), length in zip(result.skeleton.bones, result.skeleton.bone_lengths)
+    ]
+
+
 def test_full_body_joint_centres(body_fit):
     """2 mm noise + 3 mm soft tissue, rigid-skeleton joints in 3-D (hinges along their axis
     included). Measured (seed 0): ball 2.2-4.4 mm, hinges 4.7-8.6 mm, wrists/ankles
@@ -140,11 +150,7 @@ def test_full_body_without_soft_tissue_meets_the_accuracy_target():
         err = result.motion.joint_positions[:, j] - truth.joint_positions[:, tj]
         rmse = np.sqrt(np.nanmean(np.sum(err**2, -1)))
         assert rmse < 0.005, (truth.joint_names[tj], rmse)
-    true_length = {frozenset(map(int, b)): length for b, length in zip(truth.bones, truth.bone_lengths)}
-    errors = [
-        abs(length / true_length[frozenset((joint_of[int(a)], joint_of[int(b)]))] - 1)
-        for (a, b), length in zip(result.skeleton.bones, result.skeleton.bone_lengths)
-    ]
+    errors = bone_length_errors(result, truth, joint_of)
     assert len(errors) == len(truth.bone_lengths)
     assert np.mean(errors) < 0.005, errors
 
@@ -165,11 +171,7 @@ def test_full_body_long_bone_lengths(body_fit):
                     assert abs(length - lengths[seg]) / lengths[seg] < 0.015, (seg, length, lengths[seg])
                     checked += 1
     assert checked == 4
-    true_length = {frozenset(map(int, b)): length for b, length in zip(truth.bones, truth.bone_lengths)}
-    errors = [
-        abs(length / true_length[frozenset((joint_of[int(a)], joint_of[int(b)]))] - 1)
-        for (a, b), length in zip(result.skeleton.bones, result.skeleton.bone_lengths)
-    ]
+    errors = bone_length_errors(result, truth, joint_of)
     assert len(errors) == 17 and np.mean(errors) < 0.015, errors
 
 
