@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--hinge-centres", choices=["limb_plane", "prior"], default="limb_plane",
                         help="a hinge's centre along its axis: in the plane of its neighbouring joints "
                              "(default) or where the distance prior puts it (the paper)")
+        sp.add_argument("--joint-centres", choices=["anchored", "per_frame"], default="anchored",
+                        help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
+                             "frame along the directions the data resolve (default), or one per frame (the paper)")
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
         sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
@@ -142,6 +145,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not quiet,
         hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
+        joint_centres=getattr(args, "joint_centres", "anchored"),
     )
     extra_groups = {}
     if args.parameterize:

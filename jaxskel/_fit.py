@@ -35,6 +35,9 @@ __all__ = ["SkeletonResult", "fit_skeleton", "check_units", "prepare_fit", "fini
 #: Placements of a hinge's centre along its axis (``fit_skeleton(hinge_centres=...)``).
 HINGE_CENTRES = ("limb_plane", "prior")
 
+#: Joint centres handed to the rigid stage (``fit_skeleton(joint_centres=...)``).
+JOINT_CENTRES = ("anchored", "per_frame")
+
 
 def check_units(trial: Trial) -> None:
     """Raise :class:`InputError` when positions are clearly not in metres.
@@ -241,6 +244,7 @@ def fit_skeleton(
     segment_kwargs: dict[str, Any] | None = None,
     confirm_merges: bool = True,
     hinge_centres: str = "limb_plane",
+    joint_centres: str = "anchored",
 ) -> SkeletonResult:
     """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
 
@@ -280,13 +284,25 @@ def fit_skeleton(
         in the plane of its neighbouring joints (:mod:`jaxskel._hinge_centres`), or
         ``"prior"``: where the distance prior of the joint solve left it (the paper; it
         pulls the centre out to the markers on the skin).
+    joint_centres
+        The joint centres the rigid skeleton is pinned to: ``"anchored"`` (default) refits
+        each joint with its centre fixed in the frame of one of its segments and moves it
+        along the directions that fit resolves (:mod:`jaxskel._anchored_centres`; it
+        corrects centres that slide along the normal of nearly coplanar markers, such as
+        hips next to four waist markers: CMU 02_05 left thigh +83 -> -2 mm, HDM05 dg
+        right thigh +122 -> +7 mm against the ``.asf``), or ``"per_frame"``: the joint
+        solve's free centre per frame (the paper). The refit is reported in
+        ``skeleton.diagnostics["anchored"]``.
     """
     if hinge_centres not in HINGE_CENTRES:
         raise InputError(f"hinge_centres must be one of {HINGE_CENTRES}, got {hinge_centres!r}")
+    if joint_centres not in JOINT_CENTRES:
+        raise InputError(f"joint_centres must be one of {JOINT_CENTRES}, got {joint_centres!r}")
     settings = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
         alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
         rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges, hinge_centres=hinge_centres,
+        joint_centres=joint_centres,
     )
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
@@ -517,10 +533,22 @@ def finish_fit(
             sliding = None
             if prep.settings.get("hinge_centres", "limb_plane") == "limb_plane":
                 sliding = np.asarray(topology.undetermined) > 0
+            centres, anchored = topology.joint_positions, None
+            if prep.settings.get("joint_centres", "anchored") == "anchored":
+                from ._anchored_centres import anchored_centres
+
+                x, mask = work.to_arrays()
+                anchored = anchored_centres(
+                    x, mask, segmentation.marker_segment, topology.edges, topology.joint_positions
+                )
+                centres = anchored.joint_positions
             skeleton = fit_rigid(
-                work, segmentation.marker_segment, topology.edges, topology.joint_positions, root=topology.root,
+                work, segmentation.marker_segment, topology.edges, centres, root=topology.root,
                 sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT,
             )
+            if anchored is not None:
+                report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
+                skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:
             from ._ik import inverse_kinematics
