@@ -52,6 +52,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._padding import bucket_size
 from ._rigid import _procrustes
 
 __all__ = ["AnchoredCentres", "anchored_centres"]
@@ -99,25 +100,38 @@ class AnchoredCentres:
 
 
 def _segment_poses(
-    x: np.ndarray, mask: np.ndarray, members: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Marker-only pose of one segment per frame: ``R``, ``t`` with ``R x + t`` mapping
-    the frame's markers onto their mean cloud (the rigid stage's generalised Procrustes),
-    and the frames that see three markers. None if the segment has fewer than three
-    markers, fewer than three frames that see them all, or a (nearly) collinear cloud."""
-    if members.size < 3:
-        return None
-    pts, seen = x[:, members], mask[:, members]
-    full = np.flatnonzero(seen.all(axis=1))
-    if full.size < 3:
-        return None
-    w = seen.astype(float)[:, None]
-    ref, rot, t, _ = _procrustes(np.where(seen[..., None], pts, 0.0)[:, None], w, pts[full[0]][None], w[full[0]])
-    ref = np.asarray(ref[0])
-    sv = np.linalg.svd(ref - ref.mean(axis=0), compute_uv=False)
-    if sv[1] <= 1e-3 * max(sv[0], 1e-12):
-        return None
-    return np.asarray(rot[:, 0]), np.asarray(t[:, 0]), seen.sum(axis=1) >= 3
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker-only poses of every segment in every frame, in one call of the rigid
+    stage's generalised Procrustes (frames padded to a bucket so trials share compiles).
+
+    Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
+    onto their mean cloud, and ``posed`` (F, S): the frame sees three of the segment's
+    markers and the segment has a frame at all (three or more markers, three frames that
+    see them all, a cloud that is not (nearly) collinear).
+    """
+    n_frames = x.shape[0]
+    members = [np.flatnonzero(seg == s) for s in range(n_seg)]
+    pidx = np.full((n_seg, max(max((m.size for m in members), default=1), 1)), -1)
+    for s, m in enumerate(members):
+        pidx[s, : m.size] = m
+    padded = np.concatenate([np.arange(n_frames), np.zeros(bucket_size(n_frames) - n_frames, int)])
+    real = np.arange(padded.size) < n_frames
+    seen = mask[padded][:, np.maximum(pidx, 0)] & (pidx >= 0)[None] & real[:, None, None]  # (Fb, S, P)
+    pts = np.where(seen[..., None], x[padded][:, np.maximum(pidx, 0)], 0.0)
+    weights = seen.astype(float)
+    first = np.argmax(weights.sum(axis=-1), axis=0)  # per segment: best-covered frame
+    ref, rot, t, _ = (
+        np.asarray(a)
+        for a in _procrustes(pts, weights, pts[first, np.arange(n_seg)], weights[first, np.arange(n_seg)])
+    )
+    framed = np.zeros(n_seg, bool)
+    for s, m in enumerate(members):
+        if m.size >= 3 and mask[:, m].all(axis=1).sum() >= 3:
+            sv = np.linalg.svd(ref[s, : m.size] - ref[s, : m.size].mean(axis=0), compute_uv=False)
+            framed[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
+    posed = (seen.sum(axis=-1) >= 3)[:n_frames] & framed[None]
+    return rot[:n_frames], t[:n_frames], posed
 
 
 def _variance_cost(
@@ -185,26 +199,26 @@ def anchored_centres(
     jp = np.asarray(joint_positions, float)
     n_frames, n_joints = jp.shape[0], edges.shape[0]
     n_seg = int(max(seg.max(initial=-1), edges.max(initial=-1))) + 1
-    poses = [_segment_poses(x, mask, np.flatnonzero(seg == s)) for s in range(n_seg)]
+    rot_all, t_all, posed_all = _segment_poses(x, mask, seg, n_seg)
 
-    # One problem per (joint, anchor): evenly spaced posed frames, padded to a fixed size.
+    # One problem per (joint, anchor): evenly spaced posed frames, padded to bucket sizes
+    # (frames, markers, problems) so that trials share compiled shapes.
     n_sub = min(max_frames, n_frames)
-    width = max(int(((seg == a) | (seg == b)).sum()) for a, b in edges) if n_joints else 1
+    n_pad = bucket_size(n_sub)
+    width = bucket_size(max(int(((seg == a) | (seg == b)).sum()) for a, b in edges) if n_joints else 1, minimum=8)
     problems, keys = [], []
     for j, (a, b) in enumerate(edges.tolist()):
         markers = np.flatnonzero((seg == a) | (seg == b))
         for anchor in (a, b):
-            if poses[anchor] is None:
-                continue
-            rot, t, posed = poses[anchor]
-            frames = np.flatnonzero(posed & np.isfinite(jp[:, j]).all(axis=1))
+            rot, t = rot_all[:, anchor], t_all[:, anchor]
+            frames = np.flatnonzero(posed_all[:, anchor] & np.isfinite(jp[:, j]).all(axis=1))
             if frames.size < 10:
                 continue
             frames = frames[np.unique(np.linspace(0, frames.size - 1, n_sub).astype(int))]
-            sel = np.concatenate([frames, np.full(n_sub - frames.size, frames[0])])
-            real = np.arange(n_sub) < frames.size
-            xs = np.zeros((n_sub, width, 3))
-            ws = np.zeros((n_sub, width))
+            sel = np.concatenate([frames, np.full(n_pad - frames.size, frames[0])])
+            real = np.arange(n_pad) < frames.size
+            xs = np.zeros((n_pad, width, 3))
+            ws = np.zeros((n_pad, width))
             xs[:, : markers.size] = np.where(mask[sel][:, markers, None], x[sel][:, markers], 0.0)
             ws[:, : markers.size] = mask[sel][:, markers] & real[:, None]
             local = np.einsum("fij,fj->fi", rot[frames], jp[frames, j]) + t[frames]  # R j + t
@@ -223,8 +237,11 @@ def anchored_centres(
     result = np.zeros(n_joints, int)
     if problems:
         c0 = np.stack([p[0] for p in problems])
+        # padding problems: all weights 0, so a zero cost that BFGS leaves at once
+        empty = problems[0][:4] + (np.zeros_like(problems[0][4]),)
+        padded = problems + [empty] * (bucket_size(len(problems), minimum=8) - len(problems))
         c_min, f0, f_min, n_steps, code, lam, vec = (
-            np.asarray(v) for v in _solve(*(np.stack(p) for p in zip(*problems)))
+            np.asarray(v) for v in _solve(*(np.stack(p) for p in zip(*padded)))
         )
         best: dict[int, int] = {}
         for i, (j, _) in enumerate(keys):
@@ -240,8 +257,9 @@ def anchored_centres(
             if code[i] != 0 or not keep.any():
                 continue
             c = c0[i] + vec[i][:, keep] @ m[keep]
-            rot, t, posed = poses[anchor]
-            out[:, j] = np.where(posed[:, None], np.einsum("fji,fj->fi", rot, c[None] - t), np.nan)
+            rot, t = rot_all[:, anchor], t_all[:, anchor]
+            centre = np.einsum("fji,fj->fi", rot, c[None] - t)
+            out[:, j] = np.where(posed_all[:, anchor, None], centre, np.nan)
             moved[j], shift[j] = True, float(np.linalg.norm(c - c0[i]))
     return AnchoredCentres(
         out, anchor_of, moved, shift, displacement, resolution, cost_per_frame, cost, steps, result
