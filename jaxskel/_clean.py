@@ -187,6 +187,9 @@ def clean(
     present = trial.mask.copy()
     n_frames, n_markers = present.shape
     before = present.sum(axis=0)
+    # Trials fitted together (combine_trials) are cleaned each on its own frames: the
+    # junction between two recordings is not a jump, and a run ending there is not a gap edge.
+    bounds = tuple(trial.metadata.get("trial_bounds", ((0, n_frames),)))
 
     jump = np.zeros_like(present)
     if reject_jumps and n_frames >= 3:
@@ -195,7 +198,10 @@ def clean(
         seen = [m for m in range(n_markers) if present[:, m].any()]
 
         def deviation(m: int) -> np.ndarray:
-            return _running_median_deviation(pos[:, m], present[:, m], half)
+            return np.concatenate([
+                _running_median_deviation(pos[a:b, m], present[a:b, m], half) if b - a >= 3 else np.zeros(b - a)
+                for a, b in bounds
+            ])
 
         # One marker at a time bounds memory; numpy's sorts release the GIL, so a
         # thread per core runs markers side by side.
@@ -215,18 +221,21 @@ def clean(
     trimmed = np.zeros_like(present)
     longest = np.zeros(n_markers)
     for m in range(n_markers):
-        starts, stops = contiguous_runs(present[:, m])
-        for a, b in zip(starts, stops):
-            lo = a + trim if a > 0 else a
-            hi = b - trim if b < n_frames else b
-            if hi <= lo:
-                trimmed[a:b, m] = True
-                continue
-            trimmed[a:lo, m] = True
-            trimmed[hi:b, m] = True
+        for first, last in bounds:
+            starts, stops = contiguous_runs(present[first:last, m])
+            for a, b in zip(starts + first, stops + first):
+                lo = a + trim if a > first else a
+                hi = b - trim if b < last else b
+                if hi <= lo:
+                    trimmed[a:b, m] = True
+                    continue
+                trimmed[a:lo, m] = True
+                trimmed[hi:b, m] = True
         present[:, m] &= ~trimmed[:, m]
-        starts, stops = contiguous_runs(present[:, m])
-        longest[m] = (stops - starts).max() / rate if len(starts) else 0.0
+        for first, last in bounds:
+            starts, stops = contiguous_runs(present[first:last, m])
+            if len(starts):
+                longest[m] = max(longest[m], (stops - starts).max() / rate)
 
     dropped: dict[str, str] = {}
     for m, lab in enumerate(trial.labels):
