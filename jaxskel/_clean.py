@@ -161,7 +161,9 @@ def clean(
     Parameters
     ----------
     trial
-        The raw recording (metres).
+        The raw recording (metres). Trials joined for a joint fit (``fit_skeleton([a, b])``
+        records their frame ranges in ``metadata["trial_bounds"]``) are cleaned each on
+        its own frames: a junction is neither a jump nor a gap edge, and no run spans it.
     trim_s
         Seconds trimmed at each gap-adjacent run end (at least one frame; 0 disables).
     min_run_s

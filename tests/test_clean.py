@@ -5,6 +5,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
+from jaxskel._segment import combine_trials
 
 
 def smooth_trial(rate=120.0, seconds=6.0, seed=0):
@@ -37,6 +38,24 @@ def test_gap_edges_trimmed_but_not_recording_ends():
     assert m[0] and m[-1]  # recording boundaries are not gap edges
     assert report.trimmed_samples[0] == 6 and report.trimmed_samples[1:].sum() == 0
 
+
+
+def test_trials_fitted_together_are_cleaned_each_on_its_own_frames():
+    """The junction of combined trials is neither a jump (the second recording starts 2 m away)
+    nor a gap edge, while a real jump and a real gap inside the second trial still are."""
+    x, rate = smooth_trial()
+    y, _ = smooth_trial(seed=1)
+    y = y + np.array([2.0, 0.0, 0.0])
+    y[100:102, 1] += np.array([0.04, 0.0, 0.0])
+    y[300:330, 0] = np.nan
+    labels = ["a", "b", "c", "d"]
+    both = combine_trials([jaxskel.Trial(x, labels, rate), jaxskel.Trial(y, labels, rate)])
+    cleaned, report = jaxskel.clean(both, trim_s=3 / rate)
+    n = len(x)
+    assert cleaned.mask[n - 5 : n + 5].all()
+    assert report.jump_samples.tolist() == [0, 2, 0, 0]
+    assert report.trimmed_samples.tolist() == [6, 6, 0, 0]  # the gap, and the jump's hole
+    assert report.longest_run_s[2] == pytest.approx(n / rate)
 
 def test_short_lived_and_absent_markers_dropped_with_reasons():
     x, rate = smooth_trial()
