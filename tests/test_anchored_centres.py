@@ -12,7 +12,7 @@ from helpers import random_rotation
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._anchored_centres import anchored_centres
+from jaxskel._anchored_centres import MIN_EXERCISE_DEG, anchored_centres
 from jaxskel.synth._rotation import rotvec_to_matrix
 
 A_MARKERS = np.array([[0.12, 0.08, 0.0], [-0.12, 0.08, 0.003], [0.12, -0.08, -0.002], [-0.12, -0.08, 0.0]])
@@ -91,6 +91,28 @@ def test_barely_exercised_joint_is_not_moved():
     assert not out.moved[0]
     np.testing.assert_allclose(out.joint_positions[:, 0], given)
     assert np.any(np.abs(out.displacement[0]) < out.resolution[0])
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_joint_without_relative_motion_is_not_moved_by_skin_sway(seed):
+    """A standing trial: the segments turn 0.3-0.6 degrees relative to each other and B's
+    markers sway 3 mm on the skin. The fixed-centre minimum then lies 6-24 cm away,
+    several resolutions out (Hamner's static trial: 1023 mm), because the misfit is
+    0.5 mm noise. The sweep angle flags the joint as not
+    exercised and the per-frame centres are kept."""
+    x, joint, rot_a = _recording(_ball(300, 0.005, seed), noise=0.0005, seed=seed)
+    phase = np.random.default_rng(seed).uniform(0, 2 * np.pi, (1, 3, 3))
+    x[:, 4:] += 0.003 * np.sin(np.linspace(0, 2 * np.pi, 300)[:, None, None] + phase)
+    out = _refit(x, joint)
+    assert 0.1 < out.exercise[0] < MIN_EXERCISE_DEG, out.exercise
+    assert np.any(np.abs(out.displacement[0]) > 2 * out.resolution[0])  # what the guard overrules
+    assert not out.moved[0] and out.shift[0] == 0.0
+    np.testing.assert_allclose(out.joint_positions[:, 0], joint)
+    # the same recording with the joint exercised (0.5 rad) is refitted, sway and all
+    x, joint, rot_a = _recording(_ball(300, 0.5, seed), noise=0.0005, seed=seed)
+    out = _refit(x, joint + np.einsum("fij,j->fi", rot_a, [0.0, 0.0, 0.05]))
+    assert out.exercise[0] > 10.0 and out.moved[0]
+    assert np.sqrt(np.mean(np.sum((out.joint_positions[:, 0] - joint) ** 2, axis=1))) < 0.003
 
 
 def test_refit_is_invariant_to_a_rigid_motion_of_the_recording():
