@@ -74,6 +74,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
@@ -752,19 +753,21 @@ class Motion:
 
 @jax.jit
 def _gap_prior(
-    rel: Float[Array, "T F S 4"], observed: Bool[Array, "T F S"]
+    rel: Float[Array, "T F S 4"], observed: Bool[Array, "T F S"], start: Int[Array, " F"], stop: Int[Array, " F"]
 ) -> Float[Array, "T F S 4"]:
     """Relative rotations interpolated (slerp) across each segment's unobserved frames.
 
     Observed frames keep their own value; a gap takes the slerp between the last observed
     frame before and the first after it by time fraction; a gap at either end holds the
-    nearest observed value; a segment never observed keeps ``rel``.
+    nearest observed value; a segment never observed keeps ``rel``. Frame ``f`` belongs to
+    the recording ``[start[f], stop[f])`` (trials fitted together, concatenated): a gap
+    never borrows a value from another recording, whose pose is unrelated.
     """
     n = rel.shape[1]
     idx = jnp.arange(n)[None, :, None]
     prev = jax.lax.cummax(jnp.where(observed, idx, -1), axis=1)
     nxt = jax.lax.cummin(jnp.where(observed, idx, n), axis=1, reverse=True)
-    has_prev, has_next = prev >= 0, nxt < n
+    has_prev, has_next = prev >= start[None, :, None], nxt < stop[None, :, None]
     a = jnp.take_along_axis(rel, jnp.clip(prev, 0, n - 1)[..., None], axis=1)
     b = jnp.take_along_axis(rel, jnp.clip(nxt, 0, n - 1)[..., None], axis=1)
     frac = (idx - prev) / jnp.maximum(nxt - prev, 1)
@@ -774,12 +777,13 @@ def _gap_prior(
 
 @jax.jit
 def _interpolated_start(
-    rotations: Float[Array, "N S 4"], keep: Bool[Array, "T F S"], parent: Int[Array, " S"]
+    rotations: Float[Array, "N S 4"], keep: Bool[Array, "T F S"], parent: Int[Array, " S"],
+    start: Int[Array, " F"], stop: Int[Array, " F"],
 ) -> tuple[Float[Array, "N S 4"], Float[Array, "N S 4"]]:
     """Relative rotations interpolated over the frames not in ``keep`` (:func:`_gap_prior`)
     and the global orientations they compose to; N = T * F frames, trial-major."""
     rel = jax.vmap(_relative_rotations, (0, None))(rotations, parent)
-    prior = _gap_prior(rel.reshape(*keep.shape, 4), keep).reshape(rel.shape)
+    prior = _gap_prior(rel.reshape(*keep.shape, 4), keep, start, stop).reshape(rel.shape)
     return prior, jax.vmap(_compose_relative, (0, None))(prior, parent)
 
 
@@ -819,6 +823,21 @@ def _ik_input(
     return np.where(mask[..., None], x, 0.0), mask, None
 
 
+def _check_bounds(bounds: Sequence[tuple[int, int]], n_frames: int) -> tuple[tuple[int, int], ...]:
+    """Validated ``(start, stop)`` ranges: consecutive, covering frames ``0 .. n_frames``."""
+    try:
+        out = tuple((int(lo), int(hi)) for lo, hi in bounds)
+    except (TypeError, ValueError):
+        raise InputError(f"trial_bounds must be (start, stop) pairs of frame indices, got {bounds!r}") from None
+    if out and (out[0][0] != 0 or out[-1][1] != n_frames or any(lo >= hi for lo, hi in out)
+                or any(a[1] != b[0] for a, b in zip(out, out[1:]))):
+        raise InputError(
+            f"trial_bounds {list(out)} must be consecutive non-empty (start, stop) ranges covering the "
+            f"{n_frames} frames"
+        )
+    return out
+
+
 def _host_relative(q: np.ndarray, parent: np.ndarray) -> np.ndarray:
     """:func:`_relative_rotations` of (N, S, 4) host arrays, with non-negative ``w``."""
     rel = np.asarray(jax.vmap(_relative_rotations, (0, None))(jnp.asarray(q), jnp.asarray(parent)))
@@ -826,18 +845,23 @@ def _host_relative(q: np.ndarray, parent: np.ndarray) -> np.ndarray:
 
 
 def _interpolated(
-    rotations: np.ndarray, keep: np.ndarray, parent: np.ndarray
+    rotations: np.ndarray, keep: np.ndarray, parent: np.ndarray, bounds: Sequence[tuple[int, int]] = ()
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_interpolated_start` on (T, F, S, 4) host arrays, frames padded to a bucket
-    size so that its compiled shapes are reused."""
+    size so that its compiled shapes are reused; ``bounds``: the frame ranges of
+    recordings concatenated along F (default: one recording)."""
     n_trials, n_frames, n_seg = keep.shape
     f_pad = bucket_size(n_frames)
     rp = np.tile(np.asarray(_IDENTITY), (n_trials, f_pad, n_seg, 1))
     kp = np.zeros((n_trials, f_pad, n_seg), bool)
     rp[:, :n_frames] = rotations
     kp[:, :n_frames] = keep
+    first, stop = np.zeros(f_pad, np.int32), np.full(f_pad, f_pad, np.int32)
+    for lo, hi in bounds:
+        first[lo:hi], stop[lo:hi] = lo, hi
     prior, start = _interpolated_start(
-        jnp.asarray(rp.reshape(-1, n_seg, 4)), jnp.asarray(kp), jnp.asarray(parent)
+        jnp.asarray(rp.reshape(-1, n_seg, 4)), jnp.asarray(kp), jnp.asarray(parent), jnp.asarray(first),
+        jnp.asarray(stop),
     )
     shape = (n_trials, f_pad, n_seg, 4)
     return (
@@ -857,6 +881,7 @@ def inverse_kinematics(
     batch_size: int = 64,
     rate: float | None = None,
     threads: int | None = None,
+    trial_bounds: Sequence[tuple[int, int]] | None = None,
 ) -> Motion:
     """Pose a rigid skeleton in every frame: root translation and segment rotations.
 
@@ -884,6 +909,10 @@ def inverse_kinematics(
         Frame rate for array input (a Trial brings its own).
     threads
         Host threads that solve chunks concurrently (default: the CPU count, at most 4).
+    trial_bounds
+        ``(start, stop)`` frame ranges of recordings concatenated along the frame axis
+        (default: a Trial's ``metadata["trial_bounds"]``, set when trials are fitted
+        together). Gaps are filled from frames of their own recording only.
 
     Returns
     -------
@@ -906,6 +935,9 @@ def inverse_kinematics(
     n_frames, n_markers = x.shape[-3], x.shape[-2]
     if n_frames == 0:
         raise InputError("no frames to solve")
+    if trial_bounds is None:
+        trial_bounds = getattr(data, "metadata", {}).get("trial_bounds", ())
+    bounds = _check_bounds(trial_bounds, n_frames)
     m_pad = bucket_size(n_markers, minimum=8)
     n = n_trials * n_frames
     xf = np.zeros((n, m_pad, 3))
@@ -939,7 +971,9 @@ def inverse_kinematics(
     suspect = real & (rms > RESEED_FACTOR * np.median(rms[real])) if real.any() else real
     if suspect.any() and (real & ~suspect).any():
         good = np.broadcast_to((real & ~suspect)[:, None], (n, n_seg)).reshape(n_trials, n_frames, n_seg)
-        seed_rel, q_seed = _interpolated(sol["rotations"].reshape(n_trials, n_frames, n_seg, 4), good, parent)
+        seed_rel, q_seed = _interpolated(
+            sol["rotations"].reshape(n_trials, n_frames, n_seg, 4), good, parent, bounds
+        )
         rows = np.flatnonzero(suspect)
         again = solve(
             model, xf[rows], mf[rows], sol["root_position"][rows],
@@ -956,7 +990,8 @@ def inverse_kinematics(
     observed = ~((~mf)[:, :, None] & member[None]).any(axis=1)  # (n, S)
     if fill_gaps and not observed.all():
         prior2, q_start = _interpolated(
-            sol["rotations"].reshape(n_trials, n_frames, n_seg, 4), observed.reshape(n_trials, n_frames, n_seg), parent
+            sol["rotations"].reshape(n_trials, n_frames, n_seg, 4), observed.reshape(n_trials, n_frames, n_seg),
+            parent, bounds,
         )
         rows = np.flatnonzero(~observed.all(axis=1) & real)
         if rows.size:

@@ -213,15 +213,28 @@ class Trial:
         return self.select_markers([i for i in range(self.n_markers) if i not in drop])
 
     def select_frames(self, frames: slice | Sequence[int] | np.ndarray) -> Trial:
-        """Trial restricted to some frames (a slice, indices or a boolean mask)."""
+        """Trial restricted to some frames (a slice, indices or a boolean mask).
+
+        A trial concatenated from several recordings keeps ``metadata["trial_bounds"]``
+        true: the ranges are recomputed over the selected frames (one per run of frames
+        from one recording), and dropped when all come from one recording.
+        """
         if isinstance(frames, slice):
-            pos = self.positions[frames]
+            index = np.arange(self.n_frames)[frames]
         else:
             arr = np.asarray(frames)
             if arr.dtype == bool and arr.shape != (self.n_frames,):
                 raise InputError(f"boolean frame mask must have shape ({self.n_frames},)")
-            pos = self.positions[arr]
-        return self.replace(positions=pos)
+            index = np.arange(self.n_frames)[arr]
+        metadata = dict(self.metadata)
+        if "trial_bounds" in metadata:
+            stops = np.array([hi for _, hi in metadata.pop("trial_bounds")])
+            piece = np.searchsorted(stops, index, side="right")
+            cuts = np.flatnonzero(np.diff(piece) != 0) + 1
+            if cuts.size:
+                edges = np.concatenate([[0], cuts, [index.size]]).tolist()
+                metadata["trial_bounds"] = tuple(zip(edges[:-1], edges[1:]))
+        return self.replace(positions=self.positions[index], metadata=metadata)
 
     def __getitem__(self, frames: slice | Sequence[int] | np.ndarray) -> Trial:
         """``trial[a:b]`` selects frames, like :meth:`select_frames`."""

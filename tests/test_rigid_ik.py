@@ -252,6 +252,43 @@ def test_whole_segment_gap_is_interpolated(seed0):
         assert np.linalg.norm(step - true_step, axis=-1).max() < 0.01
 
 
+def test_gaps_at_a_junction_of_trials_fitted_together_are_filled_within_each_trial(seed0):
+    """Two recordings concatenated (``combine_trials``; frames 0-599 and 900-1199) with the
+    right foot hidden over the last 40 frames of the first and the first 40 of the second.
+    Each side holds its own recording's nearest foot pose; before, the gap was slerped
+    from one recording's pose to the other's, across a junction that is not motion."""
+    from jaxskel._segment import combine_trials
+
+    trial, truth, _, sk, _ = seed0
+    foot = truth.segment_names.index("r_foot")
+    on_foot = truth.marker_segment == foot
+    parts = []
+    for frames, hidden in ((slice(0, 600), slice(560, 600)), (slice(900, 1200), slice(0, 40))):
+        part = trial.select_frames(frames)
+        pos = part.positions.copy()
+        pos[hidden, on_foot] = np.nan
+        parts.append(part.replace(positions=pos))
+    frames = np.r_[0:600, 900:1200]
+    both = combine_trials(parts)
+    assert both.metadata["trial_bounds"] == ((0, 600), (600, 900))
+    motion = inverse_kinematics(sk, both)
+    gap = np.r_[560:640]
+    assert not motion.segment_observed[gap, foot].any()
+    # the foot's rotation relative to its parent: held at the last/first seen frame of its trial
+    parent = int(np.asarray(sk.parent)[foot])
+    rel = Rotation.from_quat(motion.rotations[:, parent], scalar_first=True).inv() * Rotation.from_quat(
+        motion.rotations[:, foot], scalar_first=True
+    )
+    for side, seen in ((np.r_[560:600], 559), (np.r_[600:640], 640)):
+        drift = np.degrees((rel[side] * rel[seen].inv()).magnitude())
+        assert drift.max() < 0.5, drift.max()
+    # the held pose is that trial's own: the first hidden frames of each side are close to the truth
+    err = np.linalg.norm(motion.fitted_markers[:, on_foot] - truth.clean_positions[frames][:, on_foot], axis=-1)
+    assert err[[560, 639]].max() < 0.02, err[[560, 639]]
+    with pytest.raises(InputError, match="trial_bounds"):
+        inverse_kinematics(sk, both, trial_bounds=[(0, 600), (601, 900)])
+
+
 def test_ik_is_equivariant_and_ignores_marker_order(seed0):
     trial, _, _, sk, motion = seed0
     rot = random_rotation(5)

@@ -69,6 +69,20 @@ def test_selection():
         t.select_markers(["nope"])
 
 
+def test_selecting_frames_of_combined_trials_keeps_their_bounds_true():
+    """``trial_bounds`` (trials fitted together) follow a frame selection: cleaning and IK
+    read them, and stale ranges would cut or bridge the wrong frames."""
+    from jaxskel._segment import combine_trials
+
+    both = combine_trials([make(10), make(5, seed=1), make(10, seed=2)])
+    assert both.metadata["trial_bounds"] == ((0, 10), (10, 15), (15, 25))
+    assert both[8:18].metadata["trial_bounds"] == ((0, 2), (2, 7), (7, 10))
+    assert both[::7].metadata["trial_bounds"] == ((0, 2), (2, 3), (3, 4))  # frames 0 7 | 14 | 21
+    assert both.select_frames(np.r_[12, 3]).metadata["trial_bounds"] == ((0, 1), (1, 2))
+    assert "trial_bounds" not in both[2:8].metadata  # one recording
+    np.testing.assert_array_equal(both[8:18].positions, both.positions[8:18], strict=True)
+
+
 def test_arrays_have_no_nan_and_padding_keeps_data():
     t = make()
     x, mask = t.to_arrays()
