@@ -181,12 +181,17 @@ class SkeletonResult:
         lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
         for name, group in zip(self.segment_names, self.segmentation.groups):
             lines.append(f"  {name:>8}: {', '.join(group)}")
-        lines.append("joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged")
+        from ._anchored_centres import MIN_EXERCISE_DEG
+
+        anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
+        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
+        lines.append("joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg]")
         for j in range(len(self.edges)):
             t = self.topology
             lines.append(
                 f"  {self.joint_name(j):>17}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
-                f"{int(t.steps[j]):5d}  {bool(t.converged[j])}"
+                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}"
+                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
             )
         bones = self.bone_lengths()
         if bones:
@@ -209,6 +214,22 @@ class SkeletonResult:
         from ._result_io import save_result
 
         save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
+
+
+def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
+    """A :class:`DegenerateMotionWarning` naming the joints the recording does not exercise."""
+    from ._anchored_centres import MIN_EXERCISE_DEG
+
+    still = [f"{name} ({sweep:.1f} deg)" for name, sweep in zip(joint_names, exercise) if sweep < MIN_EXERCISE_DEG]
+    if still:
+        warnings.warn(
+            f"{len(still)} joint(s) barely move in this recording: {', '.join(still)} (RMS sweep of the "
+            f"other segment's markers about the joint, below {MIN_EXERCISE_DEG:g} deg); their centres "
+            "are not determined by the motion and come from the distance prior. Fit the recording "
+            "together with a range-of-motion trial (fit_skeleton([rom, trial]))",
+            DegenerateMotionWarning,
+            stacklevel=4,
+        )
 
 
 def _as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
@@ -549,6 +570,7 @@ def finish_fit(
             if anchored is not None:
                 report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
                 skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
+                _warn_unexercised(anchored.exercise, [f"{names[p]}-{names[c]}" for p, c in topology.edges])
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:
             from ._ik import inverse_kinematics

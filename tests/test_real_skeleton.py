@@ -106,3 +106,16 @@ def test_cmu_legs_with_given_segment_count():
     error = {part: abs(fit - ref) for part, (fit, ref) in bones.items()}
     assert error["L thigh"] < 0.02
     assert min(error["L shank"], error["R shank"]) < 0.02
+
+
+def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
+    """Hamner's static trial (subject standing, 2.5 s): whatever the segments, their joints
+    barely turn, so the fit warns, reports the sweep, and does not move the centres (the
+    anchored refit moved one 1023 mm before it checked the sweep)."""
+    trial = jaxskel.load(DATA / "opensim_models" / "Hamner" / "subject02_static.trc")
+    with pytest.warns(jaxskel.DegenerateMotionWarning, match="barely move"):
+        result = jaxskel.fit_skeleton(trial, ik=False)
+    report = result.skeleton.diagnostics["anchored"]
+    assert len(result.edges) >= 1 and np.all(report["exercise"] < 1.0), report["exercise"]
+    assert not report["moved"].any()
+    assert "not exercised" in result.summary()
