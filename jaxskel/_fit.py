@@ -228,7 +228,7 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
             "are not determined by the motion and come from the distance prior. Fit the recording "
             "together with a range-of-motion trial (fit_skeleton([rom, trial]))",
             DegenerateMotionWarning,
-            stacklevel=4,
+            stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
 
 
