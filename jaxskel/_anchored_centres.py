@@ -67,11 +67,13 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._geometry import horn_align
 from ._padding import bucket_size
-from ._rigid import _procrustes
+from ._rigid import _align_to_reference, _procrustes
 
 __all__ = ["AnchoredCentres", "anchored_centres"]
+
+#: One alignment pass of every frame to a fixed reference, compiled once per shape.
+_align = jax.jit(_align_to_reference)
 
 #: A move along a Hessian eigenvector is kept where it is at least this many
 #: resolutions long (module docstring).
@@ -122,16 +124,6 @@ class AnchoredCentres:
     cost: Float[np.ndarray, " J"]
     steps: Int[np.ndarray, " J"]
     result: Int[np.ndarray, " J"]
-
-
-@jax.jit
-def _align(
-    points: Float[Array, "F S P 3"], weights: Float[Array, "F S P"], ref: Float[Array, "S P 3"],
-    ref_weights: Float[Array, "S P"],
-) -> tuple[Float[Array, "F S 3 3"], Float[Array, "F S 3"]]:
-    """Every frame's cloud aligned to the reference (Horn), ``R x + t`` onto ``ref``."""
-    align = jax.vmap(jax.vmap(horn_align, in_axes=(0, 0, 0)), in_axes=(0, None, 0))
-    return align(points, ref, weights * ref_weights[None])
 
 
 def _segment_poses(

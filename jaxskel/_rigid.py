@@ -272,6 +272,16 @@ def _as_arrays(trial: Trial | tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray
 
 
 # --------------------------------------------------------- generalised Procrustes
+def _align_to_reference(
+    points: Float[Array, "F S P 3"], weights: Float[Array, "F S P"], ref: Float[Array, "S P 3"],
+    ref_weights: Float[Array, "S P"],
+) -> tuple[Float[Array, "F S 3 3"], Float[Array, "F S 3"]]:
+    """Every frame's cloud aligned to the reference (Horn, weights = presence x reference
+    presence): ``R x + t`` maps a frame's points onto ``ref``."""
+    align = jax.vmap(jax.vmap(horn_align, in_axes=(0, 0, 0)), in_axes=(0, None, 0))
+    return align(points, ref, weights * ref_weights[None])
+
+
 @jax.jit
 def _procrustes(
     points: Float[Array, "F S P 3"],
@@ -286,10 +296,8 @@ def _procrustes(
     mean cloud, each frame's alignment ``(R, t)`` (``R x + t`` maps the frame to the
     mean) and each point's RMS scatter about the mean.
     """
-    align = jax.vmap(jax.vmap(horn_align, in_axes=(0, 0, 0)), in_axes=(0, None, 0))
-
     def aligned(ref, ref_w):
-        rot, t = align(points, ref, weights * ref_w[None])
+        rot, t = _align_to_reference(points, weights, ref, ref_w)
         return rot, t, jnp.einsum("fsij,fspj->fspi", rot, points) + t[:, :, None, :]
 
     def update(_, carry):
