@@ -688,6 +688,14 @@ def fit_rigid(
     pres = allm[:, np.maximum(pidx, 0)] & (pidx >= 0)[None]
     all_markers = np.stack([ms[:, m].all(axis=1) for m in members], axis=1)  # (F, S)
     usable = all_markers & (pres.sum(axis=-1) >= 3)
+    # The paper aligns only frames showing all of a segment's markers. A segment with a
+    # marker seldom seen with the others (a label present for 3 s of a 19 s take) has
+    # few or no such frames: it uses every frame with three points, the masked
+    # Procrustes placing each marker from the frames that show it.
+    n_points = pidx >= 0
+    seldom = ((pres & usable[..., None]).sum(axis=0) < 3) & n_points  # (S, P)
+    partial = seldom.any(axis=1)
+    usable[:, partial] = pres[:, partial].sum(axis=-1) >= 3
     weights = (pres & usable[..., None]).astype(float)
     first = np.argmax(weights.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref0 = pts[first, np.arange(n_seg)]

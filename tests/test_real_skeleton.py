@@ -119,3 +119,24 @@ def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
     assert len(result.edges) >= 1 and np.all(report["exercise"] < 1.0), report["exercise"]
     assert not report["moved"].any()
     assert "not exercised" in result.summary()
+
+
+def test_numediart_rolling_take_keeps_its_segments_rigid():
+    """numediart 03_rolling: 68 markers, 19 s of rolling on the floor, two labels seen only
+    in the first 3.4 s. In that stretch they are falsely rigid with markers all over the
+    body, and the spectral step put the left acromion marker (LLAC) in the left thigh's
+    group; the left leg then hung off the right hand (bones of 1.19 and 1.56 m). The mend
+    of the clustering moves LLAC to the trunk, and the rigid stage places the right
+    thigh, two of whose markers are never seen with all the others (that raised
+    DegenerateMotionError). Asserted: LLAC with no thigh marker, both thighs jointed to
+    the pelvis, every bone shorter than 0.6 m (measured: 104-424 mm)."""
+    result = _fit("numediart/03_rolling.c3d", None)
+    labels = np.array(result.trial.labels)
+    seg = result.segmentation.marker_segment
+    group = {name: int(seg[labels == name][0]) for name in ("LLAC", "LL_TH1", "LR_TH1", "LL_IPS", "LR_IPS")}
+    assert not any("_TH" in name for name in labels[seg == group["LLAC"]])
+    assert group["LL_IPS"] == group["LR_IPS"]
+    edges = {frozenset(map(int, e)) for e in result.edges}
+    for thigh in ("LL_TH1", "LR_TH1"):
+        assert frozenset((group[thigh], group["LL_IPS"])) in edges
+    assert np.max(result.skeleton.bone_lengths) < 0.6, result.skeleton.bone_lengths

@@ -6,7 +6,7 @@ from helpers import partition, random_rotation, true_partition
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._segment import distance_std
+from jaxskel._segment import _mend, _score, distance_std
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -71,6 +71,47 @@ def test_pairs_never_seen_together_are_unobserved_not_rigid():
     assert (0, 8) in seg.unobserved_pairs
     assert np.isnan(seg.distance_std[0, 8])
     assert seg.affinity[0, 8] < 1e-6
+
+
+def _blocks(groups, within=0.002, across=0.1, seed=0):
+    """Distance-std matrix of rigid groups: ``within`` inside a group, ``across`` between."""
+    labels = np.repeat(np.arange(len(groups)), groups)
+    rng = np.random.default_rng(seed)
+    a = np.where(labels[:, None] == labels[None, :], within, across) * rng.uniform(0.8, 1.2, (len(labels),) * 2)
+    a = 0.5 * (a + a.T)
+    np.fill_diagonal(a, 0.0)
+    return labels, a
+
+
+def test_mend_moves_a_marker_chained_into_the_wrong_group():
+    """numediart 03_rolling in miniature: marker 0 (group 0) is falsely rigid with two
+    of the seven markers of group 1 (seen together only while nothing moved), and the
+    spectral step put it in group 1, where the rest of the group shows 10 cm of
+    distance std."""
+    labels, a = _blocks([4, 7, 3])
+    a[0, [4, 5]] = a[[4, 5], 0] = 0.002
+    wrong = labels.copy()
+    wrong[0] = 1
+    assert _score(_mend(wrong, a, 0.004), a) < _score(wrong, a)
+    np.testing.assert_array_equal(_mend(wrong, a, 0.004), labels)
+    np.testing.assert_array_equal(_mend(labels, a, 0.004), labels)  # the right answer stays
+    # unobserved pairs (NaN) are no evidence either way
+    a_gap = a.copy()
+    a_gap[0, 1:3] = a_gap[1:3, 0] = np.nan
+    np.testing.assert_array_equal(_mend(wrong, a_gap, 0.004), labels)
+
+
+def test_mend_leaves_markers_on_joints_and_rigid_markers_alone():
+    labels, a = _blocks([4, 4, 4])
+    joint = 3  # about as rigid with group 1 as with its own: a marker on the joint
+    a[joint, 4:8] = a[4:8, joint] = [0.003, 0.0035, 0.0045, 0.005]
+    a[joint, :3] = a[:3, joint] = [0.004, 0.0042, 0.0038]
+    np.testing.assert_array_equal(_mend(labels, a, 0.003), labels)
+    # a marker non-rigid with its group only at the noise scale is not moved either
+    _, b = _blocks([4, 4, 4])
+    b[0, 1:4] = b[1:4, 0] = 0.003
+    b[0, 4:8] = b[4:8, 0] = 0.001
+    np.testing.assert_array_equal(_mend(labels, b, 0.004), labels)
 
 
 def test_bad_segment_counts():
