@@ -94,6 +94,7 @@ _LAZY = {
     "plot_angles": "_plots_params",
     "plot_summary": "_plots",
     "plot_distance_std": "_plots",
+    "plot_spectrum": "_plots",
     "plot_joint_costs": "_plots",
     "plot_skeleton_3d": "_plots",
     "plot_residuals": "_plots",

@@ -179,6 +179,12 @@ class SkeletonResult:
     def summary(self) -> str:
         """Segments with their markers, joints with their costs, bone lengths."""
         lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
+        seg = self.segmentation
+        gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
+        lines.append(
+            f"segment count: {'eigengap' if seg.n_segments == seg.eigengap_segments else 'given'}; "
+            f"largest eigengaps after k = {gaps}"
+        )
         for name, group in zip(self.segment_names, self.segmentation.groups):
             lines.append(f"  {name:>8}: {', '.join(group)}")
         from ._anchored_centres import MIN_EXERCISE_DEG

@@ -2,11 +2,12 @@
 
 * :func:`plot_distance_std` — the distance std-dev matrix A ordered by group:
   dark diagonal blocks are rigid segments.
+* :func:`plot_spectrum` — the affinity spectrum behind the segment count (eigengap).
 * :func:`plot_joint_costs` — the all-pairs joint-cost matrix with the tree's
   edges marked.
 * :func:`plot_skeleton_3d` — markers coloured by segment, joints and bones at one frame.
 * :func:`plot_residuals` — IK marker residual RMS over time.
-* :func:`plot_summary` — all four in one figure, saved atomically.
+* :func:`plot_summary` — all five in one figure, saved atomically.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_distance_std", "plot_joint_costs", "plot_skeleton_3d", "plot_residuals", "plot_summary"]
+__all__ = ["plot_distance_std", "plot_spectrum", "plot_joint_costs", "plot_skeleton_3d", "plot_residuals", "plot_summary"]
 
 
 def _plt():
@@ -53,6 +54,28 @@ def plot_distance_std(result: Any, ax: Any = None) -> Any:
         ax.axhline(b, color="w", lw=0.6)
         ax.axvline(b, color="w", lw=0.6)
     ax.set_title("marker distance std-dev, by segment")
+    return ax
+
+
+def plot_spectrum(result: Any, ax: Any = None) -> Any:
+    """Eigenvalues of the normalised affinity behind the segment count, with the
+    eigengap's choice and the count used marked."""
+    ax = _ax(ax)
+    seg = result.segmentation
+    ev = np.asarray(seg.eigenvalues)
+    k = np.arange(1, len(ev) + 1)
+    ax.plot(k, ev, "o-", ms=3, lw=0.8)
+    best = seg.count_candidates()
+    for rank, (kk, gap) in enumerate(best):
+        ax.annotate(f"{gap:.3f}", (kk + 0.5, 0.5 * (ev[kk - 1] + ev[kk])), fontsize=7,
+                    color="C1" if rank == 0 else "0.4")
+    ax.axvline(seg.eigengap_segments + 0.5, color="C1", lw=1, label=f"eigengap: {seg.eigengap_segments}")
+    if seg.n_segments != seg.eigengap_segments:
+        ax.axvline(seg.n_segments + 0.5, color="C2", lw=1, ls="--", label=f"used: {seg.n_segments}")
+    ax.set_xlabel("k")
+    ax.set_ylabel("eigenvalue of the normalised affinity")
+    ax.legend(fontsize=7)
+    ax.set_title("segment count (numbers: the largest gaps)")
     return ax
 
 
@@ -132,13 +155,14 @@ def plot_residuals(result: Any, ax: Any = None) -> Any:
 
 
 def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, overwrite: bool = False) -> Any:
-    """2 x 2 summary figure; saved atomically to ``path`` when given."""
+    """2 x 3 summary figure; saved atomically to ``path`` when given."""
     plt = _plt()
-    fig = plt.figure(figsize=(13, 11))
-    plot_distance_std(result, fig.add_subplot(2, 2, 1))
-    plot_joint_costs(result, fig.add_subplot(2, 2, 2))
-    plot_skeleton_3d(result, ax=fig.add_subplot(2, 2, 3, projection="3d"))
-    plot_residuals(result, fig.add_subplot(2, 2, 4))
+    fig = plt.figure(figsize=(19, 11))
+    plot_distance_std(result, fig.add_subplot(2, 3, 1))
+    plot_spectrum(result, fig.add_subplot(2, 3, 2))
+    plot_joint_costs(result, fig.add_subplot(2, 3, 3))
+    plot_skeleton_3d(result, ax=fig.add_subplot(2, 3, 4, projection="3d"))
+    plot_residuals(result, fig.add_subplot(2, 3, 5))
     fig.suptitle(str(result.trial.source or "jaxskel fit"), fontsize=9)
     fig.tight_layout()
     if path is not None:

@@ -157,6 +157,17 @@ class Segmentation:
     def segment_sizes(self) -> np.ndarray:
         return np.bincount(self.marker_segment[self.marker_segment >= 0], minlength=self.n_segments)
 
+    def count_candidates(self, n: int = 3) -> list[tuple[int, float]]:
+        """The ``n`` segment counts k with the largest eigengaps ``lambda_k - lambda_{k+1}``
+        (k >= 2, largest first): the eigengap's choice and its runners-up. Close gaps
+        mean the spectrum does not settle the count; pass ``n_segments`` then."""
+        ev = np.asarray(self.eigenvalues)
+        # The spectrum holds min(M, max_segments + 2) values (segment_markers).
+        kmax = len(ev) - 1 if len(ev) == len(self.labels) else len(ev) - 2
+        gaps = _eigengaps(ev, kmax)
+        order = np.argsort(-gaps, kind="stable")[:n]
+        return [(int(i) + 2, float(gaps[i])) for i in order]
+
     def within_std(self) -> np.ndarray:
         """Mean within-segment distance std-dev per segment (NaN for 1-marker segments)."""
         out = np.full(self.n_segments, np.nan)
@@ -176,13 +187,17 @@ def _normalised_spectrum(w: np.ndarray, k: int) -> np.ndarray:
     return ev[:k]
 
 
+def _eigengaps(ev: np.ndarray, kmax: int) -> np.ndarray:
+    """Gaps lambda_k - lambda_{k+1} after the k-th eigenvalue, k = 2..kmax."""
+    return ev[1:kmax] - ev[2 : kmax + 1]
+
+
 def _eigengap(ev: np.ndarray, max_segments: int) -> int:
     """Number of clusters at the largest gap lambda_k - lambda_{k+1}, k >= 2."""
     kmax = min(max_segments, len(ev) - 1)
     if kmax < 2:
         return max(1, kmax)
-    gaps = ev[1:kmax] - ev[2 : kmax + 1]  # gap after the k-th eigenvalue, k = 2..kmax
-    return int(np.argmax(gaps)) + 2
+    return int(np.argmax(_eigengaps(ev, kmax))) + 2
 
 
 def _score(labels: np.ndarray, a: np.ndarray) -> float:

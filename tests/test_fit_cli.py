@@ -34,6 +34,17 @@ def test_result_holds_every_stage(fitted, linkage_trial):
     assert r.topology.converged.all() and (r.topology.steps > 0).all()
     text = r.summary()
     assert "3 segments, 2 joints" in text and "bone lengths" in text
+    # the spectrum behind the count: the eigengap's choice heads the candidates
+    (k, gap), *others = r.segmentation.count_candidates()
+    assert k == r.segmentation.eigengap_segments == 3
+    assert all(gap > g for _, g in others)
+    assert f"segment count: eigengap; largest eigengaps after k = 3 ({gap:.3f})" in text
+
+
+def test_spectrum_plot_marks_the_count(fitted):
+    ax = jaxskel.plot_spectrum(fitted)
+    assert len(ax.lines[0].get_ydata()) == len(fitted.segmentation.eigenvalues)
+    assert "eigengap: 3" in [t.get_text() for t in ax.get_legend().get_texts()]
 
 
 def test_result_file_schema_roundtrip(fitted, tmp_path):
