@@ -692,8 +692,7 @@ def fit_rigid(
     # marker seldom seen with the others (a label present for 3 s of a 19 s take) has
     # few or no such frames: it uses every frame with three points, the masked
     # Procrustes placing each marker from the frames that show it.
-    n_points = pidx >= 0
-    seldom = ((pres & usable[..., None]).sum(axis=0) < 3) & n_points  # (S, P)
+    seldom = ((pres & usable[..., None]).sum(axis=0) < 3) & (pidx >= 0)  # (S, P)
     partial = seldom.any(axis=1)
     usable[:, partial] = pres[:, partial].sum(axis=-1) >= 3
     weights = (pres & usable[..., None]).astype(float)
