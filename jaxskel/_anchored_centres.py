@@ -46,7 +46,7 @@ anchor's frame, sweep an RMS angle about ``c_0`` (median over markers of
 anchors' readings, as a wobbling non-rigid anchor inflates it) of at least
 ``MIN_EXERCISE_DEG``. A 2 degree sweep moves a marker 30 cm from the joint by 10 mm,
 the size of soft-tissue artefact; below it the skin, not the joint, shapes the cost.
-Measured: static trials 0.3-0.6 degrees (every marker below 4.2), the real joints of
+Measured: static trials 0.1-0.6 degrees (every marker below 4.2), the real joints of
 CMU 02_05 and HDM05 dg 4-44 degrees (median over markers).
 
 Measured (thigh, shank, upper-arm lengths against the ``.asf``; per-frame -> anchored)

@@ -399,6 +399,7 @@ def segment_markers(
     gap_choice = _eigengap(spectrum, max_segments)
     n = n_segments if n_segments is not None else gap_choice
 
+    a_observed = np.where(observed, a_med, np.nan)  # what every candidate is mended and judged on
     candidates, scores = [], []
     for r in range(n_samplings):
         obs_r = observed_all[r].copy()
@@ -406,9 +407,9 @@ def segment_markers(
         w_r = _affinity(np.where(obs_r, a_all[r], 0.0), obs_r, sig)
         labels = _spectral(w_r, n, seed + r)
         if mend:
-            labels = _canonical(_mend(labels, np.where(observed, a_med, np.nan), sig))
+            labels = _canonical(_mend(labels, a_observed, sig))
         candidates.append(labels)
-        scores.append(_score(labels, np.where(observed, a_med, np.nan)))
+        scores.append(_score(labels, a_observed))
     best = int(np.argmin(scores))
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
@@ -417,7 +418,7 @@ def segment_markers(
         labels=trial.labels,
         marker_segment=candidates[best],
         n_segments=int(candidates[best].max()) + 1,
-        distance_std=np.where(observed, a_med, np.nan),
+        distance_std=a_observed,
         affinity=w_med,
         eigenvalues=spectrum,
         eigengap_segments=gap_choice,
