@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 from helpers import random_rotation
+from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
@@ -139,7 +140,7 @@ def test_full_body_without_soft_tissue_meets_the_accuracy_target():
     """The issue's numbers (joint-centre RMSE < 5 mm, mean bone-length error < 0.5 %) on the
     calibration body with 2 mm noise and gaps, every joint in 3-D, hinges along their axis
     included. Measured: 1.2-2.5 mm, mean bone error 0.06 %. Soft tissue adds a bias
-    (3 mm: 2-9 mm, 0.9 %; the tests above)."""
+    (1 mm: the test below; 3 mm: 2-9 mm, 0.8 %, the tests above)."""
     trial, truth = synth.simulate(synth.full_body(seed=0), duration=30.0, seed=0, noise=0.002, gaps=2)
     result = jaxskel.fit_skeleton(trial)
     assert mapped_edges(result, trial, truth) == undirected(truth.edges)
@@ -153,6 +154,62 @@ def test_full_body_without_soft_tissue_meets_the_accuracy_target():
     errors = bone_length_errors(result, truth, joint_of)
     assert len(errors) == len(truth.bone_lengths)
     assert np.mean(errors) < 0.005, errors
+
+
+def test_full_body_with_1mm_soft_tissue_meets_the_accuracy_target():
+    """The issue's numbers with soft tissue of 1 mm RMS per marker (besides 2 mm noise and
+    gaps): every joint centre within 5 mm RMSE in 3-D, mean bone-length error < 0.5 %.
+    Measured (seed 0): joints 1.6-4.0 mm, bones 0.30 % (seeds 1, 2: 0.24, 0.43 %). Above
+    ~1.5 mm the error grows with the artefact like the oracle's floor (the test below;
+    ``bench/bench_soft_tissue.py``)."""
+    trial, truth = synth.simulate(
+        synth.full_body(seed=0), duration=30.0, seed=0, noise=0.002, soft_tissue=0.001, gaps=2
+    )
+    result = jaxskel.fit_skeleton(trial)
+    assert mapped_edges(result, trial, truth) == undirected(truth.edges)
+    joint_of = {}
+    for j in range(len(result.edges)):
+        tj = true_joint_index(result, trial, truth, j)
+        joint_of[j] = tj
+        err = result.motion.joint_positions[:, j] - truth.joint_positions[:, tj]
+        rmse = np.sqrt(np.nanmean(np.sum(err**2, -1)))
+        assert rmse < 0.005, (truth.joint_names[tj], rmse)
+    errors = bone_length_errors(result, truth, joint_of)
+    assert len(errors) == len(truth.bone_lengths)
+    assert np.mean(errors) < 0.005, errors
+
+
+def test_soft_tissue_floor_oracle_is_exact_without_artefact():
+    """The oracle (tests/soft_tissue_floor.py) recovers every joint it can pose exactly from
+    clean markers, and reports no floor for the 2-marker hands."""
+    trial, truth = synth.simulate(synth.full_body(seed=1), duration=10.0, seed=1)
+    floor = floor_skeleton(trial, truth)
+    hands = [j for j, name in enumerate(truth.joint_names) if "wrist" in name]
+    posable = np.setdiff1d(np.arange(truth.n_joints), hands)
+    assert np.isnan(floor["joint_rmse"][hands]).all()
+    assert np.nanmax(floor["joint_rmse"][posable]) < 1e-9
+    assert np.isfinite(floor["bone_error"]).sum() == 15 and np.nanmax(floor["bone_error"]) < 1e-9
+
+
+def test_full_body_soft_tissue_error_is_within_the_oracle_floor(body_fit):
+    """3 mm soft tissue moving with the joint angles: to first order indistinguishable from
+    shifted joint centres, so no marker-only fit can remove it. The oracle, given every
+    marker's true segment and offset and the true tree, poses each cluster and solves each
+    joint by least squares; the articulated fit, given none of that, must reach the same
+    scale on the same 12 joints and 15 bones. Measured (seed 0): bones 0.73 % vs floor
+    1.25 %, joints 3.7 vs 6.3 mm mean. ``bench/bench_soft_tissue.py`` (0-5 mm, seeds 0-2):
+    joints always below the floor (per-frame cluster poses jitter with the noise), bones
+    0.55-0.89 of it on seeds 0-1 and 0.98-1.50 on seed 2, so the bone bound is 1.2x."""
+    trial, truth, result = body_fit
+    floor = floor_skeleton(trial, truth)
+    fit = fitted_errors(result, trial, truth)
+    joints, bones = np.isfinite(floor["joint_rmse"]), np.isfinite(floor["bone_error"])
+    assert joints.sum() == 12 and bones.sum() == 15
+    assert np.isfinite(fit["joint_rmse"]).all() and np.isfinite(fit["bone_error"]).all()
+    assert np.mean(fit["bone_error"][bones]) < 1.2 * np.mean(floor["bone_error"][bones])
+    assert np.mean(fit["joint_rmse"][joints]) < np.mean(floor["joint_rmse"][joints])
+    # the floor is real: well above what noise alone leaves (0.06 %, 1.2-2.5 mm)
+    assert np.mean(floor["bone_error"][bones]) > 0.005
 
 
 def test_full_body_long_bone_lengths(body_fit):
