@@ -98,8 +98,9 @@ def floor_skeleton(trial, truth) -> dict[str, np.ndarray]:
 
 
 def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
-    """The same measures for a :func:`jaxskel.fit_skeleton` result, indexed by the true
-    joints and bones (NaN where the fitted tree lacks that joint or bone)."""
+    """The same measures for a :func:`jaxskel.fit_skeleton` result (with its IK stage: the
+    joints are ``result.motion.joint_positions``), indexed by the true joints and bones
+    (NaN where the fitted tree lacks that joint or bone)."""
     idx = [trial.labels.index(lab) for lab in result.trial.labels]
     true_seg = truth.marker_segment[idx]
     seg = result.segmentation.marker_segment
