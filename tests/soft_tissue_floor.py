@@ -22,6 +22,7 @@ its joints (and the bones ending at them) have no floor (NaN).
 from __future__ import annotations
 
 import numpy as np
+from helpers import off_axis_rmse, segment_map
 
 
 def _cluster_poses(positions, offsets):
@@ -83,12 +84,8 @@ def floor_skeleton(trial, truth) -> dict[str, np.ndarray]:
             lhs = np.vstack([lhs, row])
             rhs = np.append(rhs, row[:3] @ truth.joint_offsets[j, 0])
         centres[j] = np.linalg.lstsq(lhs, rhs, rcond=None)[0].reshape(2, 3)
-        world = np.einsum("fij,j->fi", rot[both, p], centres[j, 0]) + trans[both, p]
-        err = world - truth.joint_positions[both, j]
-        if truth.joint_types[j] == "hinge":
-            axis_world = truth.joint_axes_world[j][both, 0]
-            err = err - np.sum(err * axis_world, -1, keepdims=True) * axis_world
-        joint_rmse[j] = np.sqrt(np.mean(np.sum(err**2, -1)))
+        world = np.einsum("fij,j->fi", rot[:, p], centres[j, 0]) + trans[:, p]  # NaN where not posed
+        joint_rmse[j] = off_axis_rmse(np.where(both[:, None], world, np.nan), truth, j)
 
     bone_error = np.full(len(truth.bones), np.nan)
     for b, ((j0, j1), length, s) in enumerate(zip(truth.bones, truth.bone_lengths, truth.bone_segment)):
@@ -101,10 +98,7 @@ def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
     """The same measures for a :func:`jaxskel.fit_skeleton` result (with its IK stage: the
     joints are ``result.motion.joint_positions``), indexed by the true joints and bones
     (NaN where the fitted tree lacks that joint or bone)."""
-    idx = [trial.labels.index(lab) for lab in result.trial.labels]
-    true_seg = truth.marker_segment[idx]
-    seg = result.segmentation.marker_segment
-    seg_map = {s: int(np.bincount(true_seg[seg == s]).argmax()) for s in range(result.n_segments)}
+    seg_map = segment_map(result, trial, truth)
     true_joint = {frozenset(map(int, e)): j for j, e in enumerate(truth.edges)}
     joint_of = {
         j: true_joint.get(frozenset((seg_map[int(p)], seg_map[int(c)])), -1) for j, (p, c) in enumerate(result.edges)
@@ -114,12 +108,7 @@ def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
     for j, tj in joint_of.items():
         if tj < 0:
             continue
-        err = positions[:, j] - truth.joint_positions[:, tj]
-        if truth.joint_types[tj] == "hinge":
-            axis = truth.joint_axes_world[tj][:, 0]
-            err = err - np.sum(err * axis, -1, keepdims=True) * axis
-        ok = np.isfinite(err[:, 0])
-        joint_rmse[tj] = np.sqrt(np.mean(np.sum(err[ok] ** 2, -1)))
+        joint_rmse[tj] = off_axis_rmse(positions[:, j], truth, tj)
     bone_index = {frozenset(map(int, b)): k for k, b in enumerate(truth.bones)}
     bone_error = np.full(len(truth.bones), np.nan)
     for (j0, j1), length in zip(result.skeleton.bones, result.skeleton.bone_lengths):

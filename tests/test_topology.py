@@ -2,20 +2,12 @@
 
 import numpy as np
 import pytest
-from helpers import random_rotation
+from helpers import off_axis_rmse, random_rotation, segment_map
 from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
 from jaxskel._tree import mst_edges, root_tree
-
-
-def segment_map(result, trial, truth):
-    """Fitted segment -> true segment (majority of its markers)."""
-    idx = [trial.labels.index(lab) for lab in result.trial.labels]
-    tseg = truth.marker_segment[idx]
-    seg = result.segmentation.marker_segment
-    return {s: int(np.bincount(tseg[seg == s]).argmax()) for s in range(result.n_segments)}
 
 
 def undirected(edges):
@@ -97,12 +89,7 @@ def test_full_body_exact_topology(body_fit):
 def joint_rmse(result, trial, truth, j, positions):
     """RMSE (m) of joint j; for hinges only the part off the hinge axis (the part markers determine)."""
     tj = true_joint_index(result, trial, truth, j)
-    err = positions[:, j] - truth.joint_positions[:, tj]
-    if truth.joint_types[tj] == "hinge":
-        axis = truth.joint_axes_world[tj][:, 0]
-        err = err - np.sum(err * axis, -1, keepdims=True) * axis
-    ok = np.isfinite(err[:, 0])
-    return tj, float(np.sqrt(np.mean(np.sum(err[ok] ** 2, -1))))
+    return tj, off_axis_rmse(positions[:, j], truth, tj)
 
 
 def bone_length_errors(result, truth, joint_of):
