@@ -181,10 +181,18 @@ class SkeletonResult:
         lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
         seg = self.segmentation
         gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
-        lines.append(
-            f"segment count: {'eigengap' if seg.n_segments == seg.eigengap_segments else 'given'}; "
-            f"largest eigengaps after k = {gaps}"
-        )
+        rule = {
+            "given": "given",
+            "eigengap": "eigengap",
+            "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
+            f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
+        }[seg.count_rule]
+        lines.append(f"segment count: {rule}; largest eigengaps after k = {gaps}")
+        for g, a, b, std in seg.nonrigid_groups():
+            lines.append(
+                f"  segment {self.segment_names[g]} is not rigid: {a} and {b} move relative to each other "
+                f"(distance std {1e3 * std:.1f} mm); consider n_segments (--segments)"
+            )
         for name, group in zip(self.segment_names, self.segmentation.groups):
             lines.append(f"  {name:>8}: {', '.join(group)}")
         from ._anchored_centres import MIN_EXERCISE_DEG

@@ -8,7 +8,9 @@ Schema version 1 (documented in the README, "Result file"):
   dropped), ``physical`` (M,) int (physical-marker index after label merging,
   identity otherwise, -1 dropped), ``used_labels`` (M',) the markers after
   cleaning/merging, ``positions`` (F, M', 3) the cleaned positions (NaN missing);
-* ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``;
+* ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
+  attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid), ``max_segments``,
+  ``rigid_limit`` (metres), ``sigma``;
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
   ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
   (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
@@ -125,6 +127,9 @@ def save_result(
             _put(g, "eigenvalues", seg.eigenvalues)
             _put(g, "distance_std", seg.distance_std)
             g.attrs["eigengap_segments"] = seg.eigengap_segments
+            g.attrs["count_rule"] = seg.count_rule
+            g.attrs["max_segments"] = seg.max_segments
+            g.attrs["rigid_limit"] = seg.rigid_limit
             g.attrs["sigma"] = seg.sigma
 
             g = f.create_group("topology")

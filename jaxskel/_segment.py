@@ -30,6 +30,15 @@ Following the paper:
 * The number of segments is given, or chosen at the largest gap of the
   normalised-affinity spectrum (the eigengap); the spectrum is kept in the
   result so a user can see why.
+* Beyond the paper, a chosen count must give rigid groups: while some group holds two
+  markers whose A_ij exceeds ``rigid_ratio * sigma`` (an affinity below e^-4.5 = 1 %:
+  the affinity itself calls them unrelated), the count grows by one, up to
+  ``max_segments``. The eigengap reads chains of affinity as one cluster: markers placed
+  on joints (a knee marker rigid with both thigh and shank) link whole limbs, and on
+  CMU 02_05 it chose 11 segments with thigh and shank markers in one group (A = 16 mm,
+  5.5 sigma); the grown count, 14, separates every limb segment. The eigengap's count
+  is kept when no count up to ``max_segments`` is rigid (a marker that moves against
+  every neighbour), or when the first rigid one leaves more single-marker groups.
 
 The pairwise statistic is one jit-compiled JAX function, vmapped over samplings,
 on padded (bucketed) arrays with masks.
@@ -131,6 +140,14 @@ class Segmentation:
         Affinity scale used (metres).
     unobserved_pairs
         (i, j) marker pairs never seen together often enough to estimate A.
+    count_rule
+        How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper), or
+        ``"rigid"`` (grown from the eigengap's count until every group is rigid).
+    max_segments
+        The upper bound of the eigengap search and of the growth.
+    rigid_limit
+        Largest A_ij (metres) two markers of one group may show (``rigid_ratio *
+        sigma``); ``inf`` when the check is off.
     """
 
     labels: tuple[str, ...]
@@ -144,6 +161,9 @@ class Segmentation:
     best_sampling: int
     sigma: float
     unobserved_pairs: tuple[tuple[int, int], ...]
+    count_rule: str = "eigengap"
+    max_segments: int = 30
+    rigid_limit: float = float("inf")
 
     @property
     def groups(self) -> list[tuple[str, ...]]:
@@ -162,11 +182,19 @@ class Segmentation:
         (k >= 2, largest first): the eigengap's choice and its runners-up. Close gaps
         mean the spectrum does not settle the count; pass ``n_segments`` then."""
         ev = np.asarray(self.eigenvalues)
-        # The spectrum holds min(M, max_segments + 2) values (segment_markers).
-        kmax = len(ev) - 1 if len(ev) == len(self.labels) else len(ev) - 2
-        gaps = _eigengaps(ev, kmax)
+        gaps = _eigengaps(ev, min(self.max_segments, len(ev) - 1))
         order = np.argsort(-gaps, kind="stable")[:n]
         return [(int(i) + 2, float(gaps[i])) for i in order]
+
+    def nonrigid_groups(self) -> list[tuple[int, str, str, float]]:
+        """Groups holding two markers that move relative to each other: ``(segment,
+        label, label, A_ij)`` of each group's least rigid pair with ``A_ij`` above
+        ``rigid_limit``."""
+        return [
+            (g, self.labels[i], self.labels[j], a)
+            for g, (i, j, a) in enumerate(_least_rigid_pairs(self.marker_segment, self.distance_std))
+            if a > self.rigid_limit
+        ]
 
     def within_std(self) -> np.ndarray:
         """Mean within-segment distance std-dev per segment (NaN for 1-marker segments)."""
@@ -208,6 +236,30 @@ def _score(labels: np.ndarray, a: np.ndarray) -> float:
             block = a[np.ix_(idx, idx)]
             total += np.nansum(block[np.triu_indices(len(idx), 1)]) / len(idx)
     return float(total)
+
+
+def _least_rigid_pairs(labels: np.ndarray, a: np.ndarray) -> list[tuple[int, int, float]]:
+    """Per group ``g = 0..max(labels)``: ``(i, j, A_ij)`` of its largest observed A_ij
+    (``(-1, -1, 0)`` when the group has fewer than two markers seen together)."""
+    out = []
+    for g in range(int(labels.max()) + 1):
+        idx = np.flatnonzero(labels == g)
+        block = np.nan_to_num(a[np.ix_(idx, idx)], nan=-np.inf)
+        if len(idx) < 2 or not np.isfinite(block.max()):
+            out.append((-1, -1, 0.0))
+            continue
+        i, j = np.unravel_index(np.argmax(block), block.shape)
+        out.append((int(idx[i]), int(idx[j]), float(block[i, j])))
+    return out
+
+
+def _least_rigidity(labels: np.ndarray, a: np.ndarray) -> float:
+    """The largest A_ij of two markers in one group."""
+    return max(a_ij for _, _, a_ij in _least_rigid_pairs(labels, a))
+
+
+def _singletons(labels: np.ndarray) -> int:
+    return int(np.sum(np.bincount(labels) == 1))
 
 
 def _mend(labels: np.ndarray, a: np.ndarray, sigma: float) -> np.ndarray:
@@ -313,6 +365,7 @@ def segment_markers(
     sigma_factor: float = 2.0,
     sigma_min: float = 0.003,
     max_segments: int = 30,
+    rigid_ratio: float | None = 3.0,
     mend: bool = True,
     seed: int = 0,
 ) -> Segmentation:
@@ -336,7 +389,13 @@ def segment_markers(
         noise floor)`` where the noise floor is the median over markers of their
         smallest A_ij.
     max_segments
-        Upper bound for the eigengap search.
+        Upper bound for the eigengap search and the rigidity growth.
+    rigid_ratio
+        With ``n_segments=None``: the count grows from the eigengap's choice until no
+        group holds two markers with ``A_ij > rigid_ratio * sigma`` (kept at the
+        eigengap's choice when no count up to ``max_segments`` achieves that, or when
+        the first that does leaves more single-marker groups).
+        ``None``: the eigengap alone (the paper).
     mend
         Move markers that are plainly in the wrong group out of each sampling's spectral
         clustering before it is scored (:func:`_mend`); ``False`` keeps the paper's
@@ -357,6 +416,8 @@ def segment_markers(
             )
     if n_samplings < 1:
         raise InputError("n_samplings must be >= 1")
+    if rigid_ratio is not None and not (isinstance(rigid_ratio, (int, float)) and rigid_ratio > 0):
+        raise InputError(f"rigid_ratio must be a positive number or None, got {rigid_ratio!r}")
     rng = np.random.default_rng(seed)
     samplings = [
         sample_frames(trial.n_frames, trial.rate, rng, interval_s=interval_s, jitter_s=jitter_s, min_samples=min_samples)
@@ -397,27 +458,48 @@ def segment_markers(
     w_med = _affinity(np.nan_to_num(a_med), observed, sig)
     spectrum = _normalised_spectrum(w_med, min(m, max_segments + 2))
     gap_choice = _eigengap(spectrum, max_segments)
-    n = n_segments if n_segments is not None else gap_choice
-
     a_observed = np.where(observed, a_med, np.nan)  # what every candidate is mended and judged on
-    candidates, scores = [], []
+    affinities = []
     for r in range(n_samplings):
         obs_r = observed_all[r].copy()
         np.fill_diagonal(obs_r, True)
-        w_r = _affinity(np.where(obs_r, a_all[r], 0.0), obs_r, sig)
-        labels = _spectral(w_r, n, seed + r)
-        if mend:
-            labels = _canonical(_mend(labels, a_observed, sig))
-        candidates.append(labels)
-        scores.append(_score(labels, a_observed))
-    best = int(np.argmin(scores))
+        affinities.append(_affinity(np.where(obs_r, a_all[r], 0.0), obs_r, sig))
+
+    def cluster(n: int) -> tuple[np.ndarray, list[float], int]:
+        """Each sampling's (mended) clustering into n groups; the best one, all scores."""
+        candidates, scores = [], []
+        for r, w_r in enumerate(affinities):
+            labels = _spectral(w_r, n, seed + r)
+            if mend:
+                labels = _canonical(_mend(labels, a_observed, sig))
+            candidates.append(labels)
+            scores.append(_score(labels, a_observed))
+        best = int(np.argmin(scores))
+        return candidates[best], scores, best
+
+    limit = float(rigid_ratio) * sig if rigid_ratio is not None else np.inf
+    if n_segments is not None:
+        rule, (labels, scores, best) = "given", cluster(n_segments)
+    else:
+        rule, (labels, scores, best) = "eigengap", cluster(gap_choice)
+        if _least_rigidity(labels, a_observed) > limit:
+            for n in range(gap_choice + 1, min(max_segments, m) + 1):
+                grown = cluster(n)
+                if _least_rigidity(grown[0], a_observed) <= limit:
+                    # A new single-marker group has no partner for a joint among its
+                    # neighbours when they carry few markers (a joint needs 4 in all):
+                    # it is then jointed anywhere (HDM05 dg: a heel marker alone, jointed
+                    # to the forearm). Keep the eigengap's count then.
+                    if _singletons(grown[0]) <= _singletons(labels):
+                        rule, (labels, scores, best) = "rigid", grown
+                    break
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
     )
     return Segmentation(
         labels=trial.labels,
-        marker_segment=candidates[best],
-        n_segments=int(candidates[best].max()) + 1,
+        marker_segment=labels,
+        n_segments=int(labels.max()) + 1,
         distance_std=a_observed,
         affinity=w_med,
         eigenvalues=spectrum,
@@ -426,6 +508,9 @@ def segment_markers(
         best_sampling=best,
         sigma=sig,
         unobserved_pairs=unobserved,
+        count_rule=rule,
+        max_segments=int(max_segments),
+        rigid_limit=limit,
     )
 
 

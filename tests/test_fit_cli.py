@@ -59,6 +59,10 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     np.testing.assert_allclose(back.joints.positions, fitted.joint_positions, equal_nan=True)
     assert back.topology.joint_cost.shape == (3, 3) and np.isinf(back.topology.joint_cost[0, 0])
     assert int(back.topology.root) == fitted.topology.root
+    seg_attrs = dict(back.segments.attrs)
+    assert seg_attrs["count_rule"] == fitted.segmentation.count_rule == "eigengap"
+    assert seg_attrs["max_segments"] == fitted.segmentation.max_segments
+    assert seg_attrs["rigid_limit"] == pytest.approx(3.0 * fitted.segmentation.sigma)
     assert (back.markers.segment >= 0).all() and back.markers.physical.tolist() == list(range(9))
     assert "joints_steps" in back.diagnostics.keys()
     # the rigid stage's diagnostics come back as JSON (they were once written as a repr)

@@ -1,5 +1,7 @@
 """Marker segmentation (Kirk et al. §3.1) against synthetic ground truth."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import partition, random_rotation, true_partition
@@ -114,9 +116,48 @@ def test_mend_leaves_markers_on_joints_and_rigid_markers_alone():
     np.testing.assert_array_equal(_mend(labels, b, 0.004), labels)
 
 
+def test_count_grows_from_the_eigengap_until_every_group_is_rigid():
+    """A random 10-segment tree whose spectrum has its largest gap at 8: two pairs of
+    segments that move little relative to each other are one cluster for the eigengap
+    (the paper's count), each holding markers whose distance varies by > 3 sigma. The
+    count grows to the first at which every group is rigid: 10, the exact segmentation."""
+    trial, truth = synth.simulate(synth.random_tree(10, seed=2), duration=30.0, seed=2, noise=0.001)
+    paper = jaxskel.segment_markers(trial, rigid_ratio=None)
+    assert paper.n_segments == paper.eigengap_segments == 8 and paper.count_rule == "eigengap"
+    assert len(paper.nonrigid_groups()) == 0  # no limit without the check
+    seg = jaxskel.segment_markers(trial)
+    assert seg.eigengap_segments == 8 and seg.count_rule == "rigid" and seg.n_segments == 10
+    assert partition(trial.labels, seg.marker_segment) == true_partition(trial, truth)
+    assert seg.rigid_limit == pytest.approx(3.0 * seg.sigma) and seg.nonrigid_groups() == []
+    # the eigengap's groups, judged by the same limit, name the markers that move apart
+    judged = dataclasses.replace(paper, rigid_limit=seg.rigid_limit)
+    named = judged.nonrigid_groups()
+    assert named and all(a > seg.rigid_limit for *_, a in named)
+    for _, first, second, _ in named:
+        assert truth.marker_segment[trial.labels.index(first)] != truth.marker_segment[trial.labels.index(second)]
+    # a count given by the user is kept as given
+    given = jaxskel.segment_markers(trial, 8)
+    assert given.n_segments == 8 and given.count_rule == "given"
+
+
+def test_count_candidates_stay_within_the_eigengap_search():
+    """The eigengap searches k = 2..max_segments; its runners-up come from the same range,
+    also when the trial has exactly max_segments + 2 markers (the spectrum is then all
+    eigenvalues, and k = max_segments + 1 must not be listed)."""
+    trial, _ = synth.simulate(synth.random_tree(4, seed=0), duration=20.0, seed=0, noise=0.001)
+    for max_segments in (trial.n_markers - 2, trial.n_markers - 4, 5):
+        seg = jaxskel.segment_markers(trial, max_segments=max_segments, rigid_ratio=None)
+        ks = [k for k, _ in seg.count_candidates(n=50)]
+        assert ks[0] == seg.eigengap_segments
+        assert sorted(ks) == list(range(2, max_segments + 1)), (max_segments, ks)
+
+
 def test_bad_segment_counts():
     trial, _ = synth.simulate(synth.linkage(), duration=5.0, seed=0)
     with pytest.raises(jaxskel.InputError, match="n_segments"):
         jaxskel.segment_markers(trial, 0)
     with pytest.raises(jaxskel.InputError, match="n_segments"):
         jaxskel.segment_markers(trial, 10)
+    for bad in (0.0, -1.0, "3"):
+        with pytest.raises(jaxskel.InputError, match="rigid_ratio"):
+            jaxskel.segment_markers(trial, rigid_ratio=bad)
