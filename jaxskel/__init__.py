@@ -60,6 +60,8 @@ _LAZY = {
     "joint_costs": "_topology",
     "fit_topology": "_topology",
     "Topology": "_topology",
+    "UntestedJoint": "_topology",
+    "untested_joints": "_topology",
     "solve_joint": "_jointcost",
     "solve_joints": "_jointcost",
     "JointSolution": "_jointcost",

@@ -172,6 +172,13 @@ class SkeletonResult:
         shared = (e0 & e1).pop()
         return f"{names[shared]} ({names[(e0 - {shared}).pop()]}-{names[(e1 - {shared}).pop()]})"
 
+    def untested_joints(self) -> list:
+        """Sparsely marked segments whose likelier joint could not be tested
+        (:func:`jaxskel.untested_joints`)."""
+        from ._topology import untested_joints
+
+        return untested_joints(self.segmentation, self.topology)
+
     def joint_name(self, j: int) -> str:
         p, c = self.edges[j]
         return f"{self.segment_names[p]}-{self.segment_names[c]}"
@@ -207,6 +214,8 @@ class SkeletonResult:
                 f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}"
                 + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
             )
+        for u in self.untested_joints():
+            lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
         bones = self.bone_lengths()
         if bones:
             lines.append("bone lengths [m]:")
@@ -241,6 +250,27 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
             f"other segment's markers about the joint, below {MIN_EXERCISE_DEG:g} deg); their centres "
             "are not determined by the motion and come from the distance prior. Fit the recording "
             "together with a range-of-motion trial (fit_skeleton([rom, trial]))",
+            DegenerateMotionWarning,
+            stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
+        )
+
+
+def _untested_text(u: Any, names: Sequence[str], sizes: np.ndarray) -> str:
+    """One line on an :class:`jaxskel.UntestedJoint`."""
+    count = int(sizes[u.segment] + sizes[u.untested])
+    return (
+        f"  untested: {names[u.segment]} is jointed to {names[u.jointed_to]} but moves more rigidly with "
+        f"{names[u.untested]} (median distance std {1e3 * u.std_untested:.1f} vs {1e3 * u.std_jointed:.1f} mm); "
+        f"their {count} markers are too few to test a joint (4 needed): add a marker or check this joint"
+    )
+
+
+def _warn_untested(untested: list, names: Sequence[str], sizes: np.ndarray) -> None:
+    """A :class:`DegenerateMotionWarning` naming attachments the joint costs could not test."""
+    if untested:
+        warnings.warn(
+            "the tree may attach sparsely marked segments to the wrong neighbour:\n"
+            + "\n".join(_untested_text(u, names, sizes) for u in untested),
             DegenerateMotionWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
@@ -560,6 +590,9 @@ def finish_fit(
             f"segment_names has {len(names)} names for {segmentation.n_segments} segments"
         )
 
+    from ._topology import untested_joints
+
+    _warn_untested(untested_joints(segmentation, topology), names, segmentation.segment_sizes)
     skeleton = motion = None
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky", "spd_solve", "eigvalsh", "generalised_eigvalsh"]
+__all__ = ["cholesky", "spd_solve", "eigvalsh", "eigh", "generalised_eigvalsh"]
 
 
 def cholesky(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
@@ -71,26 +71,20 @@ def spd_solve(a: Float[Array, "n n"], b: Float[Array, "n *m"]) -> Float[Array, "
     return jax.lax.fori_loop(0, n, backward, _forward_substitute(low, b))  # L y = b, then L^T x = y
 
 
-def eigvalsh(a: Float[Array, "n n"], sweeps: int | None = None) -> Float[Array, " n"]:
-    """Eigenvalues (ascending) of a symmetric matrix by cyclic Jacobi rotations.
+def _jacobi(a: Float[Array, "n n"], sweeps: int | None, vectors: bool) -> tuple[Array, Array | None]:
+    """Cyclic Jacobi rotations of a symmetric matrix (see :func:`eigvalsh`).
 
-    Each rotation ``J(p, q, theta)`` zeroes ``a_pq``: with ``tau = (a_qq - a_pp) / (2 a_pq)``,
-    ``t = sign(tau) / (|tau| + sqrt(1 + tau^2))``, ``c = 1 / sqrt(1 + t^2)``, ``s = t c``,
-    ``a <- J^T a J``. A sweep visits every pair once; convergence is quadratic, so
-    ``sweeps`` (default ``6 + ceil(log2 n)``) leaves off-diagonals at round-off for the
-    small (n <= a few dozen) matrices used here. Only row/column updates and a sort:
-    no LAPACK kernel (see the module docstring). vmap-able.
+    Returns the rotated (diagonal to round-off) matrix and, with ``vectors``, the
+    product of the rotations, whose columns are the eigenvectors.
     """
-    a = jnp.asarray(a)
     n = a.shape[-1]
-    if n == 1:
-        return a[..., 0]
     if sweeps is None:
         sweeps = 6 + int(n - 1).bit_length()
     pairs = jnp.asarray(list(itertools.combinations(range(n), 2)), dtype=jnp.int32)
     dtype = a.dtype
 
-    def rotate(k, m):
+    def rotate(k, state):
+        m, v = state
         p, q = pairs[k % pairs.shape[0], 0], pairs[k % pairs.shape[0], 1]
         app, aqq, apq = m[p, p], m[q, q], m[p, q]
         small = jnp.abs(apq) <= jnp.finfo(dtype).tiny ** 0.5
@@ -103,10 +97,45 @@ def eigvalsh(a: Float[Array, "n n"], sweeps: int | None = None) -> Float[Array, 
         rp, rq = m[p], m[q]
         m = m.at[p].set(c * rp - s * rq).at[q].set(s * rp + c * rq)
         cp, cq = m[:, p], m[:, q]
-        return m.at[:, p].set(c * cp - s * cq).at[:, q].set(s * cp + c * cq)
+        m = m.at[:, p].set(c * cp - s * cq).at[:, q].set(s * cp + c * cq)
+        if vectors:
+            vp, vq = v[:, p], v[:, q]
+            v = v.at[:, p].set(c * vp - s * vq).at[:, q].set(s * vp + c * vq)
+        return m, v
 
-    m = jax.lax.fori_loop(0, sweeps * int(pairs.shape[0]), rotate, 0.5 * (a + a.T))
-    return jnp.sort(jnp.diagonal(m))
+    start = (0.5 * (a + a.T), jnp.eye(n, dtype=dtype) if vectors else None)
+    return jax.lax.fori_loop(0, sweeps * int(pairs.shape[0]), rotate, start)
+
+
+def eigvalsh(a: Float[Array, "n n"], sweeps: int | None = None) -> Float[Array, " n"]:
+    """Eigenvalues (ascending) of a symmetric matrix by cyclic Jacobi rotations.
+
+    Each rotation ``J(p, q, theta)`` zeroes ``a_pq``: with ``tau = (a_qq - a_pp) / (2 a_pq)``,
+    ``t = sign(tau) / (|tau| + sqrt(1 + tau^2))``, ``c = 1 / sqrt(1 + t^2)``, ``s = t c``,
+    ``a <- J^T a J``. A sweep visits every pair once; convergence is quadratic, so
+    ``sweeps`` (default ``6 + ceil(log2 n)``) leaves off-diagonals at round-off for the
+    small (n <= a few dozen) matrices used here. Only row/column updates and a sort:
+    no LAPACK kernel (see the module docstring). vmap-able.
+    """
+    a = jnp.asarray(a)
+    if a.shape[-1] == 1:
+        return a[..., 0]
+    return jnp.sort(jnp.diagonal(_jacobi(a, sweeps, vectors=False)[0]))
+
+
+def eigh(a: Float[Array, "n n"], sweeps: int | None = None) -> tuple[Float[Array, " n"], Float[Array, "n n"]]:
+    """Eigenvalues (ascending) and eigenvectors (columns) of a symmetric matrix.
+
+    The rotations of :func:`eigvalsh`, accumulated: ``a = V diag(w) V^T`` with
+    ``V = J_1 J_2 ...``. No LAPACK kernel. vmap-able.
+    """
+    a = jnp.asarray(a)
+    if a.shape[-1] == 1:
+        return a[0], jnp.ones_like(a)
+    m, v = _jacobi(a, sweeps, vectors=True)
+    w = jnp.diagonal(m)
+    order = jnp.argsort(w)
+    return w[order], v[:, order]
 
 
 def generalised_eigvalsh(

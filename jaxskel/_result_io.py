@@ -142,6 +142,11 @@ def save_result(
             reasons = topo.pair_costs.reasons
             _put(g, "infeasible", np.asarray(list(reasons.keys()), dtype=int).reshape(-1, 2))
             _put(g, "infeasible_reason", list(reasons.values()))
+            from ._topology import untested_joints
+
+            untested = untested_joints(seg, topo)
+            _put(g, "untested", np.asarray([u[:3] for u in untested], dtype=int).reshape(-1, 3))
+            _put(g, "untested_std", np.asarray([u[3:] for u in untested], dtype=float).reshape(-1, 2))
 
             g = f.create_group("joints")
             _put(g, "positions", topo.joint_positions)

@@ -6,9 +6,12 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
 1. :func:`joint_costs` — for every pair of segments, the joint position per
    frame that keeps marker–joint distances constant, on a subsample of frames
    (``max_frames``) with the distance prior ``alpha``. All pairs are solved in
-   one vmapped, jit-compiled call on padded arrays. Pairs that cannot carry a
-   joint get an infinite cost and a reason: fewer than 3 markers in total,
-   markers never seen together, or no relative motion (joint never exercised).
+   one vmapped, jit-compiled call on padded arrays, each from the algebraic start,
+   or, for pairs that never show five markers, the consistency start
+   (:mod:`jaxskel._jointcost_init`). Pairs that cannot carry a joint get an
+   infinite cost and a reason: fewer than 4 markers in total, markers never seen
+   together, or no relative motion (joint never exercised). :func:`untested_joints`
+   names tree attachments that a pair with too few markers could not check.
 2. :func:`fit_topology` — minimum spanning tree over the costs, rooted at the
    tree's centre (or the user's root); edges parent -> child.
 3. The tree's joints are re-solved on *all* frames, warm-started from the first
@@ -23,20 +26,24 @@ import dataclasses
 import functools
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._jointcost import _settings, _solve_batch
-from ._jointcost_init import algebraic_start
+from ._jointcost_init import algebraic_start, consistency_start_batched
 from ._padding import bucket_size
 from ._segment import Segmentation
 from ._tree import mst_edges, root_tree
 from ._trial import Trial
 
-__all__ = ["PairCosts", "Topology", "joint_costs", "fit_topology", "pair_arrays", "solve_chunked"]
+__all__ = [
+    "PairCosts", "Topology", "UntestedJoint", "joint_costs", "fit_topology", "pair_arrays", "solve_chunked",
+    "untested_joints",
+]
 
 #: Below this many frames with >= 3 of a pair's markers present, a pair is infeasible.
 MIN_PAIR_FRAMES = 10
@@ -98,7 +105,9 @@ class PairCosts:
     * ``"variance"``: V alone (favours single-marker segments: the joint sits on
       that marker at no cost).
 
-    ``dof_fraction`` holds f (S, S). Solver diagnostics are per pair (S, S):
+    ``dof_fraction`` holds f (S, S). ``too_few_markers`` (S, S) marks the pairs whose
+    two segments carry fewer markers than a joint needs (infeasible whatever the
+    motion; see :func:`untested_joints`). Solver diagnostics are per pair (S, S):
     ``steps``, ``result`` (optimistix result code, 0 = success), ``uncertainty``
     (metres, how far the joint can slide at no cost; large = poorly exercised).
     """
@@ -116,6 +125,7 @@ class PairCosts:
     alpha: float
     positions: dict[tuple[int, int], np.ndarray]
     radii: dict[tuple[int, int], np.ndarray]
+    too_few_markers: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,10 +195,13 @@ def _uses_cpu(devices: Sequence[Any] | None) -> bool:
 
 
 @functools.partial(jax.jit, static_argnames=("settings", "start"))
-def _chunk_solve(xs, ms, alpha, c0, r0, controls, *, settings, start):
-    """One fixed-shape chunk: (optionally) the algebraic start, then the vmapped solve."""
+def _chunk_solve(xs, ms, alpha, c0, r0, given, controls, *, settings, start):
+    """One fixed-shape chunk: (optionally) the algebraic start for the pairs not
+    ``given`` a start, then the vmapped solve."""
     if start:
-        c0, r0 = jax.vmap(algebraic_start)(xs, ms)
+        ca, ra = jax.vmap(algebraic_start)(xs, ms)
+        c0 = jnp.where(given[:, None, None], c0, ca)
+        r0 = jnp.where(given[:, None], r0, ra)
     return _solve_batch(xs, ms, alpha, c0, r0, True, True, controls, settings=settings)
 
 
@@ -202,6 +215,7 @@ def solve_chunked(
     chunk: int,
     c0: np.ndarray | None = None,
     r0: np.ndarray | None = None,
+    given: np.ndarray | None = None,
     devices: Sequence[Any] | None = None,
     in_flight: int = 2,
 ) -> dict[str, np.ndarray]:
@@ -212,7 +226,9 @@ def solve_chunked(
     concatenated (:func:`jaxskel.fit_batch`). Each pair's solve is independent of the
     other pairs in its chunk (a vmapped while loop freezes finished pairs), so the
     result of a pair does not depend on how pairs are grouped. ``c0``/``r0`` ``None``
-    takes the algebraic start, computed inside the chunk. Chunks go round-robin to
+    takes the algebraic start, computed inside the chunk; with ``given`` (P,) bool, the
+    rows of ``c0``/``r0`` where it is True are used and the others take the algebraic
+    start. Chunks go round-robin to
     ``devices`` (default: the default device) and are dispatched asynchronously, at
     most ``in_flight`` per device at a time, so several accelerators work at once. On
     CPU devices one chunk runs at a time: concurrent executions of the solver hung
@@ -224,7 +240,11 @@ def solve_chunked(
     """
     n = len(xs)
     settings, controls = _settings(method, max_steps, None, None, xs.dtype)
-    start = c0 is None
+    start = c0 is None or given is not None
+    if c0 is None:
+        c0 = np.zeros(xs.shape[:2] + (3,), xs.dtype)
+        r0 = np.zeros(xs.shape[:1] + xs.shape[2:3], xs.dtype)
+    given = np.zeros(n, bool) if given is None else np.asarray(given, bool)
     on_cpu = _uses_cpu(devices)
     devices = list(devices) if devices else [None]
     if on_cpu:
@@ -235,9 +255,7 @@ def solve_chunked(
         devices_in_flight = len(devices)
     alpha = np.broadcast_to(np.asarray(alpha, xs.dtype), (n,))
 
-    def part(arr: np.ndarray | None, lo: int, hi: int) -> np.ndarray | None:
-        if arr is None:
-            return None
+    def part(arr: np.ndarray, lo: int, hi: int) -> np.ndarray:
         piece = arr[lo:hi]
         return np.concatenate([piece, np.zeros((chunk - len(piece),) + piece.shape[1:], piece.dtype)])
 
@@ -251,10 +269,10 @@ def solve_chunked(
 
     for i, lo in enumerate(range(0, n, chunk)):
         hi = min(lo + chunk, n)
-        args = [part(a, lo, hi) for a in (xs, ms, alpha, c0, r0)]
+        args = [part(a, lo, hi) for a in (xs, ms, alpha, c0, r0, given)]
         device = devices[i % len(devices)]
         if device is not None:
-            args = [None if a is None else jax.device_put(a, device) for a in args]
+            args = [jax.device_put(a, device) for a in args]
             ctrl = jax.device_put(controls, device)
         else:
             ctrl = controls
@@ -290,6 +308,7 @@ class AllPairsProblem:
     method: str
     max_steps: int
     weight: str
+    min_pair_markers: int = 4
 
     @property
     def shape_key(self) -> tuple[int, int]:
@@ -357,6 +376,7 @@ def all_pairs_problem(
     return AllPairsProblem(
         n_segments=s, frames=frames, sizes=sizes, reasons=reasons, pairs=pairs, xs=xs, ms=ms,
         alpha=float(alpha), method=method, max_steps=int(max_steps), weight=weight,
+        min_pair_markers=int(min_pair_markers),
     )
 
 
@@ -402,7 +422,11 @@ def pair_costs_from(problem: AllPairsProblem, sol: dict[str, np.ndarray]) -> Pai
             undetermined[u, v] = int(sol["undetermined_dims"][p])
         positions[(a, b)] = np.asarray(sol["positions"][p, :n_frames])
         radii[(a, b)] = np.asarray(sol["radii"][p, :k])
+    sizes = np.asarray(problem.sizes)
+    too_few = (sizes[:, None] + sizes[None, :]) < problem.min_pair_markers
+    np.fill_diagonal(too_few, False)
     return PairCosts(
+        too_few_markers=too_few,
         cost=cost,
         objective=objective,
         dof_fraction=dof,
@@ -454,6 +478,25 @@ def joint_costs(
     return pair_costs_from(problem, sol)
 
 
+def _consistency_starts(xs: np.ndarray, ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Starts of the pairs that never show five markers in a frame, where the algebraic
+    start has nothing to solve (:func:`jaxskel._jointcost_init.consistency_start`).
+
+    Returns ``c0`` (P, F, 3), ``r0`` (P, K) and ``given`` (P,): True where a
+    consistency start was computed (the other rows take the algebraic start).
+    """
+    c0 = np.zeros(xs.shape[:2] + (3,), xs.dtype)
+    r0 = np.zeros(xs.shape[:1] + xs.shape[2:3], xs.dtype)
+    need = np.flatnonzero((ms.sum(axis=2).max(axis=1) < 5) & (ms.sum(axis=2).max(axis=1) >= 4))
+    given = np.zeros(len(xs), bool)
+    if need.size:
+        # Pad the subset to a bucket size: one compiled start for any number of such pairs.
+        rows = np.concatenate([need, np.full(bucket_size(need.size, minimum=4) - need.size, need[0])])
+        c, r, ok = (np.asarray(v)[: need.size] for v in consistency_start_batched(xs[rows], ms[rows]))
+        c0[need], r0[need], given[need] = c, r, ok
+    return c0, r0, given
+
+
 def solve_pairs(
     problems: Sequence[AllPairsProblem], *, devices: Sequence[Any] | None = None
 ) -> list[dict[str, np.ndarray]]:
@@ -472,9 +515,10 @@ def solve_pairs(
         ms = np.concatenate([problems[i].ms for i in members])
         alpha = np.concatenate([np.full(len(problems[i].pairs), problems[i].alpha) for i in members])
         first = problems[members[0]]
+        c0, r0, given = _consistency_starts(xs, ms)
         sol = solve_chunked(
             xs, ms, alpha, method=first.method, max_steps=first.max_steps,
-            chunk=PAIR_CHUNK_CPU if _uses_cpu(devices) else PAIR_CHUNK, devices=devices,
+            chunk=PAIR_CHUNK_CPU if _uses_cpu(devices) else PAIR_CHUNK, c0=c0, r0=r0, given=given, devices=devices,
         )
         lo = 0
         for i in members:
@@ -649,6 +693,84 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
         converged=converged,
         pair_costs=problem.pair_costs,
     )
+
+
+class UntestedJoint(NamedTuple):
+    """A sparsely marked segment jointed where the data cannot confirm it (:func:`untested_joints`).
+
+    ``segment`` is jointed to ``jointed_to`` in the tree but moves more rigidly with
+    ``untested`` (median distance std-dev between their markers, metres: ``std_untested``
+    against ``std_jointed``), and the pair (``segment``, ``untested``) carries too few
+    markers for a joint to be tested.
+    """
+
+    segment: int
+    jointed_to: int
+    untested: int
+    std_untested: float
+    std_jointed: float
+
+
+def untested_joints(segmentation: Segmentation, topology: Topology) -> list[UntestedJoint]:
+    """Tree attachments that the joint costs could not check against the likelier neighbour.
+
+    A joint needs ``min_pair_markers`` (4) markers on its two segments: with three, any
+    marker-joint distances fit exactly and the cost says nothing. So a segment with one
+    marker can never be jointed to a two-marker neighbour (a lone hand marker next to a
+    forearm with two), and the spanning tree attaches it wherever a joint *can* be
+    tested, often one segment too far (the upper arm). The distance std-dev matrix of
+    the segmentation still shows what moves together. For every such untestable pair
+    ``(s, p)``, joining them would close a cycle with the tree path from ``s`` to ``p``;
+    of the path's two end edges (``s``'s and ``p``'s attachments) the one whose segments
+    move least together (largest median distance std-dev between their markers; the
+    median, as a marker placed on a joint is rigid with both sides) is reported when the
+    pair moves more rigidly together than it. Nothing is changed: the tree keeps the
+    tested joint, and the caller is told which attachment to distrust.
+    """
+    too_few = topology.pair_costs.too_few_markers
+    if too_few is None or not too_few.any():
+        return []
+    seg = segmentation.marker_segment
+    a = segmentation.distance_std
+    n_seg = segmentation.n_segments
+
+    def together(u: int, v: int) -> float:
+        block = a[np.ix_(seg == u, seg == v)]
+        return float(np.nanmedian(block)) if np.isfinite(block).any() else np.inf
+
+    neighbours: dict[int, list[int]] = {v: [] for v in range(n_seg)}
+    for u, v in np.asarray(topology.edges).reshape(-1, 2).tolist():
+        neighbours[u].append(v)
+        neighbours[v].append(u)
+
+    def path(u: int, v: int) -> list[int]:
+        """Segments on the tree path u -> v ([] when they are in different components)."""
+        parent = {u: u}
+        queue = [u]
+        while queue:
+            w = queue.pop(0)
+            for x in neighbours[w]:
+                if x not in parent:
+                    parent[x] = w
+                    queue.append(x)
+        if v not in parent:
+            return []
+        out = [v]
+        while out[-1] != u:
+            out.append(parent[out[-1]])
+        return out[::-1]
+
+    found: list[UntestedJoint] = []
+    for s, p in zip(*np.nonzero(np.triu(too_few))):
+        route = path(int(s), int(p))
+        if len(route) < 3:  # adjacent in the tree, or not connected: nothing to replace
+            continue
+        ends = [(route[0], route[1], route[-1]), (route[-1], route[-2], route[0])]
+        segment, jointed, untested = max(ends, key=lambda e: together(e[0], e[1]))
+        std_pair, std_edge = together(int(s), int(p)), together(segment, jointed)
+        if std_pair < std_edge:
+            found.append(UntestedJoint(segment, jointed, untested, std_pair, std_edge))
+    return found
 
 
 def fit_topology(

@@ -106,3 +106,24 @@ def test_whole_joint_solve_has_no_lapack_custom_call():
             jnp.zeros((p, k)), False, False, controls)
     hlo = _solve_batch.lower(*args, settings=settings).as_text()
     assert "lapack" not in hlo.lower() and "custom_call" not in hlo
+
+
+def test_jacobi_eigenvectors_match_numpy():
+    from jaxskel._linalg import eigh
+
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 4, 9):
+        m = rng.normal(size=(n, n))
+        a = m + m.T
+        w, v = (np.asarray(t) for t in eigh(jnp.asarray(a)))
+        np.testing.assert_allclose(w, np.linalg.eigvalsh(a), atol=1e-10)
+        np.testing.assert_allclose(v.T @ v, np.eye(n), atol=1e-10)
+        np.testing.assert_allclose(v @ np.diag(w) @ v.T, a, atol=1e-10)
+
+
+def test_consistency_start_has_no_lapack_custom_call():
+    """The four-marker start runs before the solve on the same device (docs/design.md)."""
+    from jaxskel._jointcost_init import consistency_start_batched
+
+    hlo = consistency_start_batched.lower(jnp.ones((2, 16, 4, 3)), jnp.ones((2, 16, 4), bool)).as_text()
+    assert "lapack" not in hlo.lower() and "custom_call" not in hlo

@@ -21,6 +21,9 @@ are left out of the unknowns (their joint is NaN).
 The start is the same closed-form algebraic fit jaxskel uses
 (:mod:`jaxskel._jointcost_init`), ported to numpy: squaring |c - m|^2 = s_k makes
 the problem linear and eliminating each frame's 3x3 block leaves a K x K system.
+Pairs that never show five markers take jaxskel's consistency start instead (the
+same 54 starting points, ``u_f = |c_f|^2`` solved for the radii by
+``scipy.optimize.least_squares``).
 
 A competent day's work, not a strawman: vectorised numpy inside a pair, sparse
 Jacobians, the same start, tolerances matched to the accuracy the answer needs.
@@ -39,6 +42,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree
 __all__ = [
     "PairFit",
     "algebraic_start",
+    "consistency_start",
     "solve_pair",
     "all_pair_costs",
     "mst_topology",
@@ -96,6 +100,55 @@ def algebraic_start(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.nda
     return c, r
 
 
+def consistency_start(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """jaxskel's start for pairs without five markers in a frame, in numpy/scipy:
+    ``(c_f, u_f) = G_f (s - q_f)`` from the linear squared-distance conditions, the radii
+    ``s`` minimising ``sum_f (u_f - |c_f|^2)^2`` from 54 starting joint points (a
+    {-1, 0, 1}^3 grid along the principal axes of the best-covered frame, at 0.5 and 1
+    times its marker span). ``None`` when no frame has four non-coplanar markers."""
+    w = mask.astype(float)
+    origin = (w[..., None] * x).sum((0, 1)) / max(w.sum(), 1.0)
+    scale = np.sqrt((w * ((x - origin) ** 2).sum(-1)).sum() / max(w.sum(), 1.0)) or 1.0
+    y = np.where(mask[..., None], (x - origin) / scale, 0.0)
+    q = (y * y).sum(-1)
+    a = np.concatenate([-2.0 * y, np.ones_like(y[..., :1])], -1) * w[..., None]
+    normal = np.einsum("fki,fkj->fij", a, a)
+    ev = np.linalg.eigvalsh(normal)
+    usable = (w.sum(1) >= 4) & (ev[:, 0] > 1e-6 * np.maximum(ev[:, -1], 1e-300))
+    if not usable.any():
+        return None
+    gain = np.einsum("fij,fkj->fik", np.linalg.inv(normal[usable]), a[usable])  # (U, 4, K)
+    qu = q[usable]
+
+    def unknowns(s):
+        return np.einsum("fik,fk->fi", gain, s[None] - qu)
+
+    def residual(s):
+        v = unknowns(s)
+        return v[:, 3] - (v[:, :3] ** 2).sum(-1)
+
+    ref = int(np.argmax(np.where(usable, w.sum(1), -1.0)))
+    seen = mask[ref]
+    y0 = y[ref]
+    centre = y0[seen].mean(0)
+    _, axes = np.linalg.eigh((y0[seen] - centre).T @ (y0[seen] - centre))
+    span = np.sqrt(((y0[seen][:, None] - y0[seen][None]) ** 2).sum(-1).max())
+    grid = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], float)
+    best = None
+    for factor in (0.5, 1.0):
+        for g in grid:
+            point = centre + factor * span * axes @ g
+            sol = least_squares(residual, ((point - y0) ** 2).sum(-1), method="lm", max_nfev=200)
+            if best is None or sol.cost < best.cost:
+                best = sol
+    c = np.where(usable[:, None], 0.0, (w[..., None] * y).sum(1) / np.maximum(w.sum(1), 1.0)[:, None])
+    c[usable] = unknowns(best.x)[:, :3]
+    used = w * usable[:, None]
+    d = np.sqrt(((c[:, None] - y) ** 2).sum(-1))
+    r = (used * d).sum(0) / np.maximum(used.sum(0), 1.0)
+    return c * scale + origin, r * scale
+
+
 def _pair_cost(c: np.ndarray, x: np.ndarray, obs: np.ndarray, alpha: float) -> tuple[float, float, np.ndarray]:
     """(Q, variance part, radii = mean distances) of joint positions ``c`` (F, 3)."""
     d = np.linalg.norm(np.where(obs[..., None], c[:, None] - x, 0.0), axis=-1)
@@ -127,7 +180,8 @@ def solve_pair(
         return PairFit(np.full((f_all, 3), np.nan), np.zeros(k), np.inf, np.inf, 0, -1)
     xs, ob = x[frames], obs[frames]
     if c0 is None or r0 is None:
-        ca, ra = algebraic_start(xs, ob)
+        start = consistency_start(xs, ob) if ob.sum(1).max() < 5 else None
+        ca, ra = start if start is not None else algebraic_start(xs, ob)
         c0 = ca if c0 is None else c0[frames]
         r0 = ra if r0 is None else r0
     else:
