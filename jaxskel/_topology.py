@@ -37,7 +37,7 @@ from ._jointcost import _settings, _solve_batch
 from ._jointcost_init import algebraic_start, consistency_start_batched
 from ._padding import bucket_size
 from ._segment import Segmentation
-from ._tree import mst_edges, root_tree
+from ._tree import mst_edges, root_tree, tree_path
 from ._trial import Trial
 
 __all__ = [
@@ -487,7 +487,8 @@ def _consistency_starts(xs: np.ndarray, ms: np.ndarray) -> tuple[np.ndarray, np.
     """
     c0 = np.zeros(xs.shape[:2] + (3,), xs.dtype)
     r0 = np.zeros(xs.shape[:1] + xs.shape[2:3], xs.dtype)
-    need = np.flatnonzero((ms.sum(axis=2).max(axis=1) < 5) & (ms.sum(axis=2).max(axis=1) >= 4))
+    most = ms.sum(axis=2).max(axis=1)  # most markers any frame of the pair shows
+    need = np.flatnonzero((most >= 4) & (most < 5))
     given = np.zeros(len(xs), bool)
     if need.size:
         # Pad the subset to a bucket size: one compiled start for any number of such pairs.
@@ -727,6 +728,12 @@ def untested_joints(segmentation: Segmentation, topology: Topology) -> list[Unte
     pair moves more rigidly together than it. Nothing is changed: the tree keeps the
     tested joint, and the caller is told which attachment to distrust.
     """
+    if not isinstance(segmentation, Segmentation) or not isinstance(topology, Topology):
+        raise InputError(
+            "untested_joints(segmentation, topology) takes a jaxskel.Segmentation and a jaxskel.Topology "
+            f"(got {type(segmentation).__name__}, {type(topology).__name__}); for a fit, call "
+            "result.untested_joints()"
+        )
     too_few = topology.pair_costs.too_few_markers
     if too_few is None or not too_few.any():
         return []
@@ -738,31 +745,11 @@ def untested_joints(segmentation: Segmentation, topology: Topology) -> list[Unte
         block = a[np.ix_(seg == u, seg == v)]
         return float(np.nanmedian(block)) if np.isfinite(block).any() else np.inf
 
-    neighbours: dict[int, list[int]] = {v: [] for v in range(n_seg)}
-    for u, v in np.asarray(topology.edges).reshape(-1, 2).tolist():
-        neighbours[u].append(v)
-        neighbours[v].append(u)
-
-    def path(u: int, v: int) -> list[int]:
-        """Segments on the tree path u -> v ([] when they are in different components)."""
-        parent = {u: u}
-        queue = [u]
-        while queue:
-            w = queue.pop(0)
-            for x in neighbours[w]:
-                if x not in parent:
-                    parent[x] = w
-                    queue.append(x)
-        if v not in parent:
-            return []
-        out = [v]
-        while out[-1] != u:
-            out.append(parent[out[-1]])
-        return out[::-1]
+    edges = np.asarray(topology.edges).reshape(-1, 2)
 
     found: list[UntestedJoint] = []
     for s, p in zip(*np.nonzero(np.triu(too_few))):
-        route = path(int(s), int(p))
+        route = tree_path(n_seg, edges, int(s), int(p))
         if len(route) < 3:  # adjacent in the tree, or not connected: nothing to replace
             continue
         ends = [(route[0], route[1], route[-1]), (route[-1], route[-2], route[0])]

@@ -13,7 +13,7 @@ from collections import deque
 import numpy as np
 from scipy.sparse.csgraph import minimum_spanning_tree
 
-__all__ = ["mst_edges", "tree_centre", "root_tree", "topological_order"]
+__all__ = ["mst_edges", "tree_centre", "root_tree", "topological_order", "tree_path"]
 
 
 def mst_edges(cost: np.ndarray) -> np.ndarray:
@@ -43,16 +43,29 @@ def _adjacency(n: int, edges: np.ndarray) -> list[list[int]]:
     return adj
 
 
-def _bfs(adj: list[list[int]], start: int) -> dict[int, int]:
-    dist = {start: 0}
+def _bfs(adj: list[list[int]], start: int) -> tuple[dict[int, int], dict[int, int]]:
+    """Hops from ``start`` and the breadth-first parent of every node reached."""
+    dist, parent = {start: 0}, {start: start}
     queue = deque([start])
     while queue:
         u = queue.popleft()
         for v in adj[u]:
             if v not in dist:
                 dist[v] = dist[u] + 1
+                parent[v] = u
                 queue.append(v)
-    return dist
+    return dist, parent
+
+
+def tree_path(n: int, edges: np.ndarray, u: int, v: int) -> list[int]:
+    """Nodes on the tree path ``u -> v`` (both included); ``[]`` in different components."""
+    parent = _bfs(_adjacency(n, edges), u)[1]
+    if v not in parent:
+        return []
+    path = [v]
+    while path[-1] != u:
+        path.append(parent[path[-1]])
+    return path[::-1]
 
 
 def tree_centre(n: int, edges: np.ndarray, component: list[int], weight: np.ndarray | None = None) -> int:
@@ -62,7 +75,7 @@ def tree_centre(n: int, edges: np.ndarray, component: list[int], weight: np.ndar
     ``weight`` (e.g. marker count), then the smaller index.
     """
     adj = _adjacency(n, edges)
-    ecc = {u: max(_bfs(adj, u).values()) for u in component}
+    ecc = {u: max(_bfs(adj, u)[0].values()) for u in component}
     best = min(ecc.values())
     cands = [u for u in component if ecc[u] == best]
     if weight is not None:
@@ -86,7 +99,7 @@ def root_tree(
     order = ([root] if root is not None else []) + list(range(n))
     for s in order:
         if s not in seen:
-            comp = sorted(_bfs(adj, s))
+            comp = sorted(_bfs(adj, s)[0])
             seen.update(comp)
             components.append(comp)
     roots, directed = [], []

@@ -7,7 +7,7 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._tree import mst_edges, root_tree
+from jaxskel._tree import mst_edges, root_tree, tree_path
 
 
 def undirected(edges):
@@ -52,6 +52,10 @@ def test_disconnected_graph_gives_forest():
     cost = np.array([[inf, 1, inf, inf], [1, inf, inf, inf], [inf, inf, inf, 2], [inf, inf, 2, inf]])
     directed, roots = root_tree(4, mst_edges(cost))
     assert len(roots) == 2 and len(directed) == 2
+    edges = mst_edges(cost)
+    assert tree_path(4, edges, 0, 1) == [0, 1] and tree_path(4, edges, 0, 2) == []
+    star = np.array([[0, 1], [1, 2], [1, 3], [3, 4]])
+    assert tree_path(5, star, 2, 4) == [2, 1, 3, 4] and tree_path(5, star, 4, 4) == [4]
 
 
 # ----------------------------------------------------------------------------- linkage
@@ -249,6 +253,8 @@ def test_lone_hand_marker_next_to_a_two_marker_forearm_is_reported(tmp_path):
     result.save(tmp_path / "r.h5")
     loaded = jaxskel.load_result(tmp_path / "r.h5")
     assert loaded.topology.untested.shape == (2, 3)
+    with pytest.raises(jaxskel.InputError, match="result.untested_joints"):
+        jaxskel.untested_joints(result, result.topology)
     # With two markers on each hand every joint is tested, and nothing is reported.
     dense = synth.full_body(seed=0, markers_per_segment={"l_forearm": 2, "r_forearm": 2})
     trial, _ = synth.simulate(dense, duration=20.0, seed=0, noise=0.002, soft_tissue=0.003, gaps=1)
