@@ -132,9 +132,9 @@ def _segment_poses(
     """Marker-only poses of every segment in every frame.
 
     The mean cloud of each segment comes from the rigid stage's generalised Procrustes
-    (nine alignment passes) on at most ``max_frames`` evenly spaced frames; every frame is
-    then aligned to it once (a 120 s recording at 120 Hz: 3.8 -> 1 s). Frames are padded
-    to bucket sizes so trials share compiles.
+    (passes until the mean cloud settles, at most eight) on at most ``max_frames`` evenly
+    spaced frames; every frame is then aligned to it once (a 120 s recording at 120 Hz:
+    3.8 -> 1 s). Frames are padded to bucket sizes so trials share compiles.
 
     Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
     onto their mean cloud, and ``posed`` (F, S): the frame sees three of the segment's

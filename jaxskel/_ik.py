@@ -838,9 +838,14 @@ def _check_bounds(bounds: Sequence[tuple[int, int]], n_frames: int) -> tuple[tup
     return out
 
 
+# Compiled once per shape: run eagerly, the vmapped quaternion algebra dispatched op by op
+# (25 ms a call on 1000 frames; the rigid refinement calls it once per sweep).
+_relative_batch = jax.jit(jax.vmap(_relative_rotations, (0, None)))
+
+
 def _host_relative(q: np.ndarray, parent: np.ndarray) -> np.ndarray:
     """:func:`_relative_rotations` of (N, S, 4) host arrays, with non-negative ``w``."""
-    rel = np.asarray(jax.vmap(_relative_rotations, (0, None))(jnp.asarray(q), jnp.asarray(parent)))
+    rel = np.asarray(_relative_batch(jnp.asarray(q), jnp.asarray(parent)))
     return np.where(rel[..., :1] < 0, -rel, rel)
 
 

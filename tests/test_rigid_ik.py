@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from jaxskel import ConvergenceWarning, DegenerateMotionError, InputError, synth
 from jaxskel import _ik as ik_module
 from jaxskel import _ik_batch as ik_batch
-from jaxskel._geometry import horn_align, matrix_to_quat
+from jaxskel._geometry import det3, horn_align, matrix_to_quat
 from jaxskel._ik import (
     forward_kinematics,
     ik_solve,
@@ -199,6 +199,25 @@ def test_fit_rigid_rejects_bad_input(seed0):
 
 
 # ------------------------------------------------------------------ kinematics
+def test_horn_alignment_is_a_proper_rotation_even_for_mirrored_clouds():
+    """Kabsch's sign correction (det3 of U and V^T) on clouds of 3-6 points: the exact pose
+    is recovered, and a mirrored cloud, which the unconstrained SVD solution would fit
+    by a reflection (det -1), still gets a rotation. det3 agrees with numpy's LU det."""
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(200, 3, 3))
+    np.testing.assert_allclose(np.asarray(det3(jnp.asarray(m))), np.linalg.det(m), rtol=1e-10, atol=1e-12)
+    for n in (3, 4, 6):
+        src = rng.normal(size=(n, 3))
+        rot_true = random_rotation(rng)
+        dst = src @ rot_true.T + np.array([0.1, -0.2, 0.3])
+        rot, t = (np.asarray(v) for v in horn_align(jnp.asarray(src), jnp.asarray(dst)))
+        np.testing.assert_allclose(rot, rot_true, atol=1e-9)
+        mirrored = dst * np.array([1.0, 1.0, -1.0])
+        rot, _ = (np.asarray(v) for v in horn_align(jnp.asarray(src), jnp.asarray(mirrored)))
+        assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-9)
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
+
+
 def test_forward_kinematics_reproduces_the_simulator():
     body = synth.random_tree(9, seed=3)
     _, truth = synth.simulate(body, "calibration", duration=0.5, seed=3)
