@@ -927,7 +927,7 @@ def inverse_kinematics(
     tree elimination per step, Newton steps after the first); it minimises the same
     energy as :func:`solve_frame` / :func:`ik_solve`.
     """
-    from ._ik_batch import batch_model, solve
+    from ._ik_batch import batch_model, solve, solver_shape
 
     for name, value in (("max_steps", max_steps), ("batch_size", batch_size)):
         if not isinstance(value, (int, np.integer)) or value < 1:
@@ -943,13 +943,15 @@ def inverse_kinematics(
     if trial_bounds is None:
         trial_bounds = getattr(data, "metadata", {}).get("trial_bounds", ())
     bounds = _check_bounds(trial_bounds, n_frames)
-    m_pad = bucket_size(n_markers, minimum=8)
+    slots, m_pad = solver_shape(skeleton.marker_segment, skeleton.edges, n_markers)
     n = n_trials * n_frames
     xf = np.zeros((n, m_pad, 3))
     mf = np.zeros((n, m_pad), bool)
     xf[:, :n_markers] = x.reshape(n, n_markers, 3)
     mf[:, :n_markers] = mask.reshape(n, n_markers)
-    model = batch_model(skeleton.edges, skeleton.joint_offsets, skeleton.marker_offsets, skeleton.marker_segment)
+    model = batch_model(
+        skeleton.edges, skeleton.joint_offsets, skeleton.marker_offsets, skeleton.marker_segment, slots=slots
+    )
     n_seg = skeleton.n_segments
     parent = np.asarray(skeleton.parent)
     pw = np.full((n_seg,), float(prior_weight))

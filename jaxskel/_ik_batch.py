@@ -53,7 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-__all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk"]
+from ._padding import bucket_size
+
+__all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
 
 #: Weight of the default-pose pull in the Horn start, per point (as in ik_initial_guess).
 HORN_DEFAULT_WEIGHT = 1e-3
@@ -176,10 +178,12 @@ def batch_model(
     marker_segment: np.ndarray,
     marker_weight: np.ndarray | None = None,
     *,
+    slots: int = 1,
     dtype: Any = np.float64,
 ) -> BatchModel:
     """Host-side :class:`BatchModel`; markers with ``marker_segment < 0``, non-finite
-    offsets or zero weight are left out."""
+    offsets or zero weight are left out. Each segment gets at least ``slots`` slots
+    (see :func:`solver_shape`)."""
     plan = TreePlan.from_edges(edges)
     n_seg = plan.n_seg
     seg = np.asarray(marker_segment, dtype=np.int64)
@@ -187,7 +191,7 @@ def batch_model(
     weight = np.ones(seg.shape[0]) if marker_weight is None else np.asarray(marker_weight, np.float64)
     usable = (seg >= 0) & np.isfinite(offsets).all(axis=1) & (weight > 0)
     members = [np.flatnonzero(usable & (seg == s)) for s in plan.order]
-    slots = max(1, max(len(m) for m in members))
+    slots = max(1, int(slots), max(len(m) for m in members))
     index = np.zeros((n_seg, slots), np.int32)
     w = np.zeros((n_seg, slots, 1))
     off = np.zeros((3, n_seg, slots, 1))
@@ -251,6 +255,26 @@ def batch_model(
         unit=jnp.ones((), dtype),
         width=int(width),
     )
+
+
+def solver_shape(marker_segment: np.ndarray, edges: np.ndarray, n_markers: int) -> tuple[int, int]:
+    """``(slots, columns)`` that the IK of a skeleton and its rigid refinement share.
+
+    The refinement (:mod:`jaxskel._rigid`) solves the IK with each joint centre as one
+    more observed point, fixed at the proximal end of the joint's child segment, so each
+    non-root segment needs one slot more than it has markers and the input one column
+    per joint more. :func:`jaxskel.inverse_kinematics` reserves the same room (a slot of
+    weight 0, padded columns), so both run *one* compiled :func:`solve_chunk`: compiling
+    it takes ~6 s on two CPU cores, the idle slot costs the IK a few percent. Returns the
+    slot count per segment and the padded width of the marker axis for ``n_markers``
+    markers.
+    """
+    seg = np.asarray(marker_segment, dtype=np.int64)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    n_seg = edges.shape[0] + 1
+    count = np.bincount(seg[seg >= 0], minlength=n_seg)[:n_seg]
+    count[edges[:, 1]] += 1
+    return max(1, int(count.max())), bucket_size(int(n_markers) + edges.shape[0], minimum=8)
 
 
 def _barrier(model: BatchModel, x):

@@ -80,7 +80,7 @@ from ._ik import (
     ik_model,
     kinematic_chain,
 )
-from ._ik_batch import batch_model, solve
+from ._ik_batch import batch_model, solve, solver_shape
 from ._linalg import spd_solve
 from ._padding import bucket_size
 from ._trial import Trial
@@ -517,8 +517,8 @@ def _refine(
     """Alternate IK sweeps and exact offset updates (module docstring).
 
     A sweep is the batched IK of :mod:`jaxskel._ik_batch` over all fitting frames, the
-    joint centres entering as extra "markers" fixed on their parent segment at the
-    joint's offset (weight ``joint_weight^2``); it starts from ``start`` (the previous
+    joint centres entering as extra "markers" (weight ``joint_weight^2``) at the proximal
+    end of the joint's child, where the parent's joint offset puts it; it starts from ``start`` (the previous
     sweep's poses, the prior their relative rotations) or, for ``None``, from the
     batched Horn alignment. With ``refine`` each sweep is followed by the offset update
     until the cost stops dropping; a last sweep then fits the poses to the final
@@ -532,18 +532,23 @@ def _refine(
     """
     n_m = marker_theta.shape[0]
     parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
-    observed = present > 0
+    # The IK's shapes (solver_shape): the refinement and the final IK share one compile.
+    slots, columns = solver_shape(obs_segment[:n_m], edges, n_m)
+    pad = ((0, 0), (0, columns - obs.shape[1]))
+    obs_in, observed = np.pad(obs, (*pad, (0, 0))), np.pad(present > 0, pad)
 
     def sweep(m_th, j_th, sol):
+        # A joint centre is observed at its child's proximal end (offset 0): the point
+        # the parent's joint offset j_th puts it at, one slot on the child.
         model = batch_model(
-            edges, np.stack([j_th, np.zeros_like(j_th)], axis=1), np.concatenate([m_th, j_th]), obs_segment,
-            obs_base_weight,
+            edges, np.stack([j_th, np.zeros_like(j_th)], axis=1), np.concatenate([m_th, np.zeros_like(j_th)]),
+            obs_segment, obs_base_weight, slots=slots,
         )
         if sol is None:
-            return solve(model, obs, observed, None, None, None, prior_weight, max_steps=max_steps)
+            return solve(model, obs_in, observed, None, None, None, prior_weight, max_steps=max_steps)
         q = sol["rotations"]
         return solve(
-            model, obs, observed, sol["root_position"], q, _host_relative(q, parent), prior_weight,
+            model, obs_in, observed, sol["root_position"], q, _host_relative(q, parent), prior_weight,
             max_steps=max_steps,
         )
 
@@ -784,7 +789,7 @@ def fit_rigid(
     # ---- 2. Global refinement.
     obs = np.concatenate([xs, js], axis=1)
     present = np.concatenate([ms, jm], axis=1).astype(float)
-    obs_segment = np.concatenate([useg, edges[:, 0]]).astype(np.int32)
+    obs_segment = np.concatenate([useg, edges[:, 1]]).astype(np.int32)  # joints: on the child
     base_weight = np.concatenate([np.ones(n_used), np.full(n_joints, float(joint_weight) ** 2)])
     chain_np = np.asarray(kinematic_chain(jnp.asarray(edges)).path)
     coef = np.zeros((n_used + n_joints, n_used + n_joints))

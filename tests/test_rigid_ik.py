@@ -387,6 +387,65 @@ def test_frames_in_a_wrong_basin_are_solved_again(monkeypatch):
     assert worst_joint_error() < 0.01
 
 
+def test_rigid_refinement_and_ik_run_one_compiled_solver(monkeypatch):
+    # fit_rigid's sweeps (joint centres as extra observed points) and the IK of the fitted
+    # skeleton must call solve_chunk with one set of shapes: each distinct set is a new
+    # compilation of the whole solver (~6 s on two cores) in every new process.
+    body = synth.full_body(seed=2)
+    trial, truth = synth.simulate(body, "calibration", duration=3.0, seed=2, noise=NOISE)
+    shapes = set()
+    real = ik_batch.solve_chunk
+
+    def recording(model, *args, **kwargs):
+        leaves = jax.tree.leaves((model, args))
+        shapes.add(tuple((np.shape(a), np.result_type(a).str) for a in leaves) + (model.width,))
+        return real(model, *args, **kwargs)
+
+    monkeypatch.setattr(ik_batch, "solve_chunk", recording)
+    # Segments with 2-4 markers, the root with 4 and a segment of 4 off the root:
+    # the IK's reserved joint slot is what lets the shapes agree.
+    counts = np.bincount(truth.marker_segment)
+    assert counts[truth.root] == counts.max() and (np.delete(counts, truth.root) == counts.max()).any()
+    skeleton = fit_rigid(trial, truth.marker_segment, truth.edges, truth.joint_positions, max_frames=100)
+    assert len(shapes) == 1
+    inverse_kinematics(skeleton, trial)
+    assert len(shapes) == 1
+
+
+def test_joint_centres_observed_on_the_child_or_the_parent_give_the_same_poses(seed0):
+    # The refinement observes a joint centre at its child's proximal end (marker offset 0
+    # on the child); that is the point the parent's joint offset puts it at, so the IK
+    # solution must be the one it had with the joint observed on the parent. Both start
+    # from the IK's poses with their relative rotations as the prior (a Horn start
+    # differs between the two layouts, and with it the prior's target).
+    trial, truth, joints, sk, motion = seed0
+    n_m, n_j = sk.marker_offsets.shape[0], sk.edges.shape[0]
+    frames = slice(0, 64 * 3)
+    obs = np.concatenate([trial.positions[frames], joints[frames]], axis=1)
+    present = np.concatenate([trial.mask[frames], np.ones((obs.shape[0], n_j), bool)], axis=1)
+    weight = np.concatenate([np.ones(n_m), np.full(n_j, 0.1**2)])
+    j_th = sk.joint_offsets[:, 0]
+    solutions = []
+    for on_child in (False, True):
+        side = sk.edges[:, 1] if on_child else sk.edges[:, 0]
+        offsets = np.concatenate([sk.marker_offsets, np.zeros_like(j_th) if on_child else j_th])
+        model = ik_batch.batch_model(
+            sk.edges, np.stack([j_th, np.zeros_like(j_th)], axis=1), offsets,
+            np.concatenate([sk.marker_segment, side]), weight,
+        )
+        q0 = motion.rotations[frames]
+        solutions.append(ik_batch.solve(
+            model, obs, present, motion.root_position[frames], q0, ik_module._host_relative(q0, np.asarray(sk.parent)),
+            np.full(sk.n_segments, 0.01), max_steps=100, threads=1,
+        ))
+    on_parent, on_child = solutions
+    assert on_parent["done"].all() and on_child["done"].all()
+    np.testing.assert_allclose(on_child["rms"], on_parent["rms"], rtol=1e-6)
+    np.testing.assert_allclose(on_child["joint_positions"], on_parent["joint_positions"], atol=1e-6)
+    dots = np.abs(np.sum(on_child["rotations"] * on_parent["rotations"], axis=-1))
+    assert dots.min() > 1.0 - 1e-10
+
+
 def test_ik_warm_start_from_a_previous_motion(seed0):
     trial, _, _, sk, motion = seed0
     again = inverse_kinematics(sk, trial, init=motion)
