@@ -621,8 +621,11 @@ def finish_fit(
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:
             from ._ik import inverse_kinematics
+            from ._ik_batch import solver_shape
 
-            motion = inverse_kinematics(skeleton, work)
+            # the refinement's slot count: its compiled solver serves the IK too
+            slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
+            motion = inverse_kinematics(skeleton, work, slots=slots)
 
     return SkeletonResult(
         input_labels=prep.input_labels,

@@ -263,11 +263,11 @@ def solver_shape(marker_segment: np.ndarray, edges: np.ndarray, n_markers: int) 
     The refinement (:mod:`jaxskel._rigid`) solves the IK with each joint centre as one
     more observed point, fixed at the proximal end of the joint's child segment, so each
     non-root segment needs one slot more than it has markers and the input one column
-    per joint more. :func:`jaxskel.inverse_kinematics` reserves the same room (a slot of
-    weight 0, padded columns), so both run *one* compiled :func:`solve_chunk`: compiling
-    it takes ~6 s on two CPU cores, the idle slot costs the IK a few percent. Returns the
-    slot count per segment and the padded width of the marker axis for ``n_markers``
-    markers.
+    per joint more. :func:`jaxskel.inverse_kinematics` pads its columns the same way (free)
+    and, given ``slots`` (as :func:`jaxskel.fit_skeleton` does), reserves that slot too,
+    so both run *one* compiled :func:`solve_chunk`: compiling it takes ~6 s on two CPU
+    cores, the idle slot costs the IK ~20 % per frame. Returns the slot count per
+    segment and the padded width of the marker axis for ``n_markers`` markers.
     """
     seg = np.asarray(marker_segment, dtype=np.int64)
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)

@@ -318,3 +318,55 @@ def test_bad_input_is_reported():
         solve_joint(markers, c0=np.zeros((19, 3)))
     with pytest.raises(DegenerateMotionError, match="three|3"):
         solve_joint(markers[:, :2])
+
+
+def test_pair_problem_blocks_match_autodiff_and_block_solve_the_dense_system():
+    # The LM's planar kernels (coordinate planes, symmetric blocks as six planes) against
+    # jax.hessian / jax.grad of f(c, r) = 1/2 sum beta [(d - r)^2 + alpha d], with a
+    # missing marker and a frame without weight (A = I there, zero right-hand side).
+    from jaxskel._jointcost_lm import PairProblem, block_solve
+
+    rng = np.random.default_rng(3)
+    frames, k = 6, 4
+    markers = jnp.asarray(rng.normal(0.0, 0.1, (frames, k, 3)))
+    beta = rng.uniform(0.5, 1.5, (frames, k))
+    beta[2, 1] = 0.0
+    beta[4] = 0.0
+    beta = jnp.asarray(beta)
+    alpha = jnp.asarray(0.3)
+    problem = PairProblem(markers, beta, alpha)
+    c = jnp.asarray(rng.normal(0.0, 0.2, (frames, 3)))
+    r = jnp.asarray(rng.uniform(0.1, 0.3, k))
+
+    def objective(c, r):
+        d = jnp.linalg.norm(c[:, None] - markers, axis=-1)
+        return 0.5 * jnp.sum(beta * ((d - r) ** 2 + alpha * d))
+
+    a, b, c_diag, g_c, g_r = problem.blocks(c, r, curvature="exact")
+    grad_c, grad_r = jax.grad(objective, argnums=(0, 1))(c, r)
+    np.testing.assert_allclose(g_c, grad_c, atol=1e-12)
+    np.testing.assert_allclose(g_r, grad_r, atol=1e-12)
+    np.testing.assert_allclose(jnp.sum(problem.frame_costs(c, r)), objective(c, r), rtol=1e-12)
+    hess = jax.hessian(objective, argnums=(0, 1))(c, r)
+    valid = np.asarray(problem.valid_frames)
+    for f in range(frames):
+        want = np.asarray(hess[0][0][f, :, f, :]) if valid[f] else np.eye(3)
+        np.testing.assert_allclose(a[f], want, atol=1e-12)
+        np.testing.assert_allclose(b[f], hess[0][1][f], atol=1e-12)
+    np.testing.assert_allclose(c_diag, np.diag(hess[1][1]), atol=1e-12)
+    # The LM model drops negative curvature only: "positive" minus "exact" is PSD.
+    a_pos, *_ = problem.blocks(c, r, curvature="positive")
+    assert np.linalg.eigvalsh(np.asarray(a_pos - a)).min() > -1e-12
+
+    # block_solve against the assembled dense system.
+    dense = np.zeros((3 * frames + k, 3 * frames + k))
+    for f in range(frames):
+        dense[3 * f : 3 * f + 3, 3 * f : 3 * f + 3] = a_pos[f]
+    b_pos = np.asarray(problem.blocks(c, r, curvature="positive")[1])
+    dense[: 3 * frames, 3 * frames :] = b_pos.reshape(3 * frames, k)
+    dense[3 * frames :, : 3 * frames] = b_pos.reshape(3 * frames, k).T
+    dense[3 * frames :, 3 * frames :] = np.diag(np.asarray(c_diag)) + 5.0 * np.eye(k)
+    rhs_c, rhs_r = rng.normal(size=(frames, 3)), rng.normal(size=k)
+    x_c, x_r = block_solve(a_pos, jnp.asarray(b_pos), c_diag + 5.0, jnp.asarray(rhs_c), jnp.asarray(rhs_r))
+    want = np.linalg.solve(dense, np.concatenate([rhs_c.reshape(-1), rhs_r]))
+    np.testing.assert_allclose(np.concatenate([np.asarray(x_c).reshape(-1), x_r]), want, rtol=1e-9, atol=1e-12)

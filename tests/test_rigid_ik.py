@@ -408,8 +408,11 @@ def test_rigid_refinement_and_ik_run_one_compiled_solver(monkeypatch):
     assert counts[truth.root] == counts.max() and (np.delete(counts, truth.root) == counts.max()).any()
     skeleton = fit_rigid(trial, truth.marker_segment, truth.edges, truth.joint_positions, max_frames=100)
     assert len(shapes) == 1
-    inverse_kinematics(skeleton, trial)
+    slots, _ = ik_batch.solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
+    inverse_kinematics(skeleton, trial, slots=slots)  # as fit_skeleton calls it
     assert len(shapes) == 1
+    inverse_kinematics(skeleton, trial)  # on its own: no idle slot
+    assert len(shapes) == 2
 
 
 def test_joint_centres_observed_on_the_child_or_the_parent_give_the_same_poses(seed0):
