@@ -518,9 +518,10 @@ def _refine(
 
     A sweep is the batched IK of :mod:`jaxskel._ik_batch` over all fitting frames, the
     joint centres entering as extra "markers" (weight ``joint_weight^2``) at the proximal
-    end of the joint's child, where the parent's joint offset puts it; it starts from ``start`` (the previous
-    sweep's poses, the prior their relative rotations) or, for ``None``, from the
-    batched Horn alignment. With ``refine`` each sweep is followed by the offset update
+    end of the joint's child, where the parent's joint offset puts it; it starts from
+    ``start`` (the previous sweep's poses, the prior their relative rotations) or, for
+    ``None``, from the batched Horn alignment. With ``refine`` each sweep is followed by
+    the offset update
     until the cost stops dropping; a last sweep then fits the poses to the final
     offsets. Alternating the two converges linearly and slowly along directions that
     couple poses and offsets (with lightly weighted joint centres, rate ~0.86 per sweep:
