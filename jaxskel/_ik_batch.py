@@ -54,6 +54,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._padding import bucket_size
+from ._sym3 import SYM, UPPER, sym_apply, sym_inverse
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
 
@@ -74,7 +75,6 @@ NEWTON_GAIN = 0.75
 #: ... and only if it lowered the energy by less than this fraction.
 NEWTON_DROP = 0.5
 _TINY = 1e-30
-_SYM = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
 
 
 # ------------------------------------------------------------------ the tree plan
@@ -323,38 +323,18 @@ def _mmul(a, b):
 
 def _mtmul_sym(a, b):
     """Upper triangle of ``a^T b`` (for a result known to be symmetric)."""
-    return tuple(a[i] * b[j] + a[3 + i] * b[3 + j] + a[6 + i] * b[6 + j] for i, j in _UPPER)
-
-
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    return tuple(a[i] * b[j] + a[3 + i] * b[3 + j] + a[6 + i] * b[6 + j] for i, j in UPPER)
 
 
 def _sfull(s):
-    return tuple(s[_SYM[i][j]] for i in range(3) for j in range(3))
-
-
-def _svec(s, v):
-    return tuple(s[_SYM[i][0]] * v[0] + s[_SYM[i][1]] * v[1] + s[_SYM[i][2]] * v[2] for i in range(3))
+    return tuple(s[SYM[i][j]] for i in range(3) for j in range(3))
 
 
 def _smul(s, m):
     """Symmetric (6-tuple) times general."""
     return tuple(
-        s[_SYM[i][0]] * m[j] + s[_SYM[i][1]] * m[3 + j] + s[_SYM[i][2]] * m[6 + j] for i in range(3) for j in range(3)
+        s[SYM[i][0]] * m[j] + s[SYM[i][1]] * m[3 + j] + s[SYM[i][2]] * m[6 + j] for i in range(3) for j in range(3)
     )
-
-
-def _sinv(s):
-    """Inverse of symmetric positive-definite 3x3 blocks (adjugate over determinant)."""
-    a, b, c, d, e, f = s
-    c00 = d * f - e * e
-    c01 = c * e - b * f
-    c02 = b * e - c * d
-    c11 = a * f - c * c
-    c12 = b * c - a * e
-    c22 = a * d - b * b
-    r = 1.0 / (a * c00 + b * c01 + c * c02)
-    return (c00 * r, c01 * r, c02 * r, c11 * r, c12 * r, c22 * r)
 
 
 def _cross_right(m, r):
@@ -526,14 +506,14 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     wu, wr = _barrier(model, (_vscale(w, u), _vscale(w, r)))
     weight = _sum_slots(w)
     f = tuple(_sum_slots(c) for c in wu)
-    kmat = [_sum_slots(wu[i] * u[j]) for i, j in _UPPER]  # sum w u u^T
+    kmat = [_sum_slots(wu[i] * u[j]) for i, j in UPPER]  # sum w u u^T
     g_w = tuple(_sum_slots(c) for c in _vcross(wu, r))
     g_v = tuple(_sum_slots(c) for c in wr)
     tr = kmat[0] + kmat[3] + kmat[5]
     # |w x u|^2 = w^T (|u|^2 I - u u^T) w; residual curvature sym(r u^T) - (r.u) I.
     kr = [_sum_slots(wr[i] * u[j]) for i in range(3) for j in range(3)]
     tr_r = kr[0] + kr[4] + kr[8]
-    sym_r = [0.5 * (kr[3 * i + j] + kr[3 * j + i]) for i, j in _UPPER]
+    sym_r = [0.5 * (kr[3 * i + j] + kr[3 * j + i]) for i, j in UPPER]
     h_ww = [-kmat[k] + newton * sym_r[k] for k in range(6)]
     for k in (0, 3, 5):
         h_ww[k] = h_ww[k] + tr - newton * tr_r
@@ -572,25 +552,25 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
         for k in (0, 3, 5):
             m[k] = m[k] + mu * jnp.abs(m[k]) + 1e-12
         m = tuple(jnp.where(valid > 0, c, e) for c, e in zip(m, eye6))
-        minv, p, hwv = _barrier(model, (_sinv(m), p, hwv))
+        minv, p, hwv = _barrier(model, (sym_inverse(m), p, hwv))
         gh = _vadd(gw, bb)
         y = _smul(minv, hwv)
-        z = _svec(minv, gh)
+        z = sym_apply(minv, gh)
         zz = _smul(minv, _sfull(p))
         y, z, zz = _barrier(model, (y, z, zz))
         qa = _vsub(p, _mtmul_sym(_sfull(p), zz))
         qb = _smul(p, y)
         qc = _vsub(hvv, _mtmul_sym(hwv, y))
-        ga = _vsub(_svec(p, z), bb)
+        ga = _vsub(sym_apply(p, z), bb)
         gc = _vsub(gv, _mtvec(hwv, z))
         pidx = jax.lax.dynamic_slice_in_dim(parent_pad, start, width)
         rr = _vsub(_slice(ref_pad, start, width), _rows(ref_pad, pidx))
         qa, qb, qc, ga, gc, rr = _barrier(model, (qa, qb, qc, ga, gc, rr))
         qbx = _cross_right(qb, rr)  # Qb X with X = -[rr]x
         xqcx = _cross_left(rr, _cross_right(_sfull(qc), rr))  # X^T Qc X
-        to_ww = [qa[k] + qbx[3 * i + j] + qbx[3 * j + i] + xqcx[3 * i + j] for k, (i, j) in enumerate(_UPPER)]
+        to_ww = [qa[k] + qbx[3 * i + j] + qbx[3 * j + i] + xqcx[3 * i + j] for k, (i, j) in enumerate(UPPER)]
         er = _vdot(es, rr)
-        for k, (i, j) in enumerate(_UPPER):
+        for k, (i, j) in enumerate(UPPER):
             to_ww[k] = to_ww[k] + newton * (0.5 * (es[i] * rr[j] + es[j] * rr[i]) - (er if i == j else 0.0))
         to_wv = _vadd(qb, _cross_left(rr, _sfull(qc)))
         to_gw = _vadd(ga, _vcross(rr, gc))
@@ -615,11 +595,11 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     for k in (0, 3, 5):
         a_mat[k] = a_mat[k] + mu * jnp.abs(a_mat[k]) + 1e-12
         c_mat[k] = c_mat[k] + mu * jnp.abs(c_mat[k]) + 1e-12
-    a_inv = _barrier(model, _sinv(a_mat))
+    a_inv = _barrier(model, sym_inverse(a_mat))
     ah = _barrier(model, _smul(a_inv, hwv))  # A^-1 H
-    ag = _svec(a_inv, g_w)
+    ag = sym_apply(a_inv, g_w)
     schur = _vsub(c_mat, _mtmul_sym(hwv, ah))
-    v_root = _svec(_sinv(schur), _vsub(_mtvec(hwv, ag), g_v))
+    v_root = sym_apply(sym_inverse(schur), _vsub(_mtvec(hwv, ag), g_v))
     w_root = tuple(-c for c in _vadd(ag, _mvec(ah, v_root)))
     xv = _barrier(model, (*w_root, *v_root))
 

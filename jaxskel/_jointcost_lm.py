@@ -57,6 +57,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._linalg import spd_solve
+from ._sym3 import SYM, UPPER, sym_apply, sym_inverse
 
 __all__ = ["PairProblem", "block_solve", "levenberg_marquardt", "inv3"]
 
@@ -93,9 +94,7 @@ def inv3(a: Float[Array, "*b 3 3"]) -> Float[Array, "*b 3 3"]:
 # The hot loop keeps every 3-vector as three (F,) or (F, K) planes instead of a trailing
 # axis of 3: XLA:CPU vectorises along the minor axis, and a minor axis of 3 wastes most
 # of each SIMD register (measured on 16,384 x 8 entries: frame costs 1.5 -> 0.63 ms).
-# A symmetric 3x3 block is its six upper-triangle planes (00, 01, 02, 11, 12, 22).
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_SYM = ((0, 1, 2), (1, 3, 4), (2, 4, 5))  # _SYM[i][j]: plane of entry (i, j)
+# A symmetric 3x3 block is its six upper-triangle planes (jaxskel._sym3).
 
 
 def _planes(x: Float[Array, "... 3"]) -> tuple[Array, Array, Array]:
@@ -103,11 +102,11 @@ def _planes(x: Float[Array, "... 3"]) -> tuple[Array, Array, Array]:
 
 
 def _sym_planes(a: Float[Array, "F 3 3"]) -> tuple[Array, ...]:
-    return tuple(a[:, i, j] for i, j in _UPPER)
+    return tuple(a[:, i, j] for i, j in UPPER)
 
 
 def _sym_matrix(a6) -> Float[Array, "F 3 3"]:
-    return jnp.stack([jnp.stack([a6[_SYM[i][j]] for j in range(3)], -1) for i in range(3)], -2)
+    return jnp.stack([jnp.stack([a6[SYM[i][j]] for j in range(3)], -1) for i in range(3)], -2)
 
 
 def _geometry(m, c):
@@ -143,7 +142,7 @@ def _blocks(m, beta, alpha, c, r, curvature: str):
         w_uu, w_eye = beta * (1.0 - s), jnp.sum(beta * s, axis=1)
     valid = jnp.any(beta > 0, axis=1)
     a6 = []
-    for i, j in _UPPER:
+    for i, j in UPPER:
         entry = jnp.sum(w_uu * u[i] * u[j], axis=1) + (w_eye if i == j else 0.0)
         a6.append(jnp.where(valid, entry, 1.0 if i == j else 0.0))  # invalid frames: A = I
     b = tuple(-beta * ui for ui in u)
@@ -155,28 +154,15 @@ def _blocks(m, beta, alpha, c, r, curvature: str):
     return tuple(a6), b, c_diag, g_c, g_r
 
 
-def _sym_inverse(a6):
-    """Inverse of symmetric 3x3 blocks by cofactors, as six planes."""
-    a00, a01, a02, a11, a12, a22 = a6
-    c00 = a11 * a22 - a12 * a12
-    c01 = a12 * a02 - a01 * a22
-    c02 = a01 * a12 - a11 * a02
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    inv_det = 1.0 / (a00 * c00 + a01 * c01 + a02 * c02)
-    return tuple(x * inv_det for x in (c00, c01, c02, c11, c12, c22))
-
-
 def _sym_apply(a6, x):
     """``A x`` for symmetric blocks ``a6`` and planes ``x`` ((F,) or (F, K) each)."""
-    lead = (slice(None),) + (None,) * (x[0].ndim - 1)
-    return tuple(sum(a6[_SYM[i][j]][lead] * x[j] for j in range(3)) for i in range(3))
+    lead = (slice(None),) + (None,) * (x[0].ndim - 1)  # frames first: broadcast over K
+    return sym_apply(tuple(a[lead] for a in a6), x)
 
 
 def _block_solve(a6, b, c_diag, rhs_c, rhs_r):
     """Planar :func:`block_solve` (symmetric blocks)."""
-    a_inv = _sym_inverse(a6)
+    a_inv = sym_inverse(a6)
     a_inv_b = _sym_apply(a_inv, b)  # 3 x (F, K)
     a_inv_rhs = _sym_apply(a_inv, rhs_c)  # 3 x (F,)
     hi = jax.lax.Precision.HIGHEST
