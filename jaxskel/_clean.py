@@ -4,6 +4,14 @@ Optical systems report large errors just before they lose a marker and just
 after they find it again, and markers sometimes jump by centimetres for a few
 frames. Before any fitting, :func:`clean`
 
+0. merges duplicate labels: two labels whose positions coincide (within
+   ``duplicate_tolerance``) in every frame where both are seen, over at least
+   ``min_run_s`` of such frames, are one marker stored twice (HDM05's files carry
+   unnamed copies ``*0``, ``*1``, ``*2`` of three named markers). Two physical
+   markers can never be that close (their centres are at least a marker diameter,
+   >= 3 mm, apart), and a copy would otherwise count twice in every cost. The label
+   kept is a named one over an unnamed ``*N``, then the one seen in more frames,
+   then the first; it takes the copy's samples where it is itself missing;
 1. rejects sporadic jumps: a sample further than ``jump_threshold`` from the
    robust local prediction from its own trajectory (window ``jump_window_s``) is marked
    missing. The threshold adapts to the marker: ``max(jump_threshold,
@@ -27,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -34,7 +43,7 @@ import numpy as np
 from ._errors import InputError
 from ._trial import Trial
 
-__all__ = ["clean", "CleaningReport", "contiguous_runs"]
+__all__ = ["clean", "CleaningReport", "contiguous_runs", "find_duplicates"]
 
 
 def contiguous_runs(present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -64,6 +73,9 @@ class CleaningReport:
         Labels of markers removed entirely, with the reason.
     settings
         The parameters used.
+    duplicates
+        Label of every duplicate merged away -> the label it was merged into (also in
+        ``dropped``).
     """
 
     labels: tuple[str, ...]
@@ -74,6 +86,7 @@ class CleaningReport:
     longest_run_s: np.ndarray
     dropped: dict[str, str]
     settings: dict[str, float]
+    duplicates: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def kept_labels(self) -> tuple[str, ...]:
@@ -86,6 +99,7 @@ class CleaningReport:
             f"cleaning: {n} markers in, {n - len(self.dropped)} kept, {len(self.dropped)} dropped; "
             f"{int(self.jump_samples.sum())} jump samples rejected, "
             f"{int(self.trimmed_samples.sum())} gap-edge samples trimmed"
+            + (f", {len(self.duplicates)} duplicate labels merged" if self.duplicates else "")
         ]
         for lab, why in self.dropped.items():
             lines.append(f"  dropped {lab}: {why}")
@@ -146,6 +160,81 @@ def _running_median_deviation(x: np.ndarray, present: np.ndarray, half: int) -> 
     return np.where(two_sided, np.linalg.norm(xp - med, axis=-1), 0.0)
 
 
+_UNNAMED = re.compile(r"^\*\d+$")
+
+
+def find_duplicates(
+    positions: np.ndarray, present: np.ndarray, *, tolerance: float, min_frames: int
+) -> list[tuple[int, ...]]:
+    """Groups of markers that are one marker stored under several labels.
+
+    Markers ``i`` and ``j`` are copies when they are both present in at least
+    ``min_frames`` frames and no such frame puts them more than ``tolerance`` apart.
+    Candidates come from every ``max(1, min_frames // 2)``-th frame (any overlap of
+    ``min_frames`` consecutive frames holds two of them) and are then checked on all
+    frames. Returns groups (sorted tuples of marker indices, two or more each).
+
+    Parameters
+    ----------
+    positions
+        (F, M, 3) positions, metres (anything where ``present`` is False).
+    present
+        (F, M) bool.
+    """
+    n_frames, n_markers = present.shape
+    if n_markers < 2 or n_frames == 0:
+        return []
+    stride = max(1, int(min_frames) // 2)
+    candidates = np.zeros((n_markers, n_markers), dtype=bool)
+    sampled = np.arange(0, n_frames, stride)
+    for lo in range(0, len(sampled), 256):  # (256, M, M) per block bounds memory
+        rows = sampled[lo : lo + 256]
+        x = np.where(present[rows, :, None], positions[rows], np.nan)
+        d2 = sum((x[:, :, None, c] - x[:, None, :, c]) ** 2 for c in range(3))
+        with np.errstate(invalid="ignore"):
+            candidates |= (d2 <= tolerance**2).any(axis=0)
+    parent = list(range(n_markers))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(candidates, 1))):
+        both = present[:, i] & present[:, j]
+        if both.sum() < max(int(min_frames), 1):
+            continue
+        gap = np.linalg.norm(positions[both, i] - positions[both, j], axis=-1)
+        if np.all(gap <= tolerance):
+            parent[root(int(j))] = root(int(i))
+    groups: dict[int, list[int]] = {}
+    for m in range(n_markers):
+        groups.setdefault(root(m), []).append(m)
+    return [tuple(g) for g in groups.values() if len(g) > 1]
+
+
+def _merge_duplicates(
+    labels: tuple[str, ...], pos: np.ndarray, present: np.ndarray, *, tolerance: float, min_frames: int
+) -> dict[int, int]:
+    """Merge copies in place (``pos``/``present``); return copy index -> kept index."""
+    merged: dict[int, int] = {}
+    for group in find_duplicates(pos, present, tolerance=tolerance, min_frames=min_frames):
+        seen = present[:, list(group)].sum(axis=0)
+        # the kept label takes every copy's samples, so its name matters most: a named
+        # label over Vicon's unnamed "*N", then the one seen most, then the first
+        keep = min(group, key=lambda m: (bool(_UNNAMED.match(labels[m])), -seen[group.index(m)], m))
+        for m in group:
+            if m == keep:
+                continue
+            fill = present[:, m] & ~present[:, keep]
+            pos[fill, keep] = pos[fill, m]
+            present[:, keep] |= present[:, m]
+            present[:, m] = False
+            merged[m] = keep
+    return merged
+
+
 def clean(
     trial: Trial,
     *,
@@ -155,8 +244,10 @@ def clean(
     jump_threshold: float = 0.02,
     jump_mad_factor: float = 8.0,
     jump_window_s: float = 0.1,
+    duplicate_tolerance: float = 0.001,
+    duplicate_min_s: float = 0.5,
 ) -> tuple[Trial, CleaningReport]:
-    """Clean a trial: reject jumps, trim gap edges, drop short-lived markers.
+    """Clean a trial: merge duplicate labels, reject jumps, trim gap edges, drop short-lived markers.
 
     Parameters
     ----------
@@ -173,6 +264,10 @@ def clean(
         (window ``jump_window_s`` seconds, centred) by more than
         ``max(jump_threshold, median + jump_mad_factor * robust_std)`` metres of that
         marker's deviations is missing.
+    duplicate_tolerance, duplicate_min_s
+        Two labels both seen in at least ``duplicate_min_s`` seconds of frames, never
+        further apart than ``duplicate_tolerance`` metres there, are one marker: the
+        copy is merged into the kept label and dropped (``0`` disables).
 
     Returns
     -------
@@ -181,14 +276,21 @@ def clean(
     """
     if not isinstance(trial, Trial):
         raise InputError(f"clean() takes a jaxskel.Trial, got {type(trial).__name__}")
-    for name, val in (("trim_s", trim_s), ("min_run_s", min_run_s), ("jump_window_s", jump_window_s)):
+    for name, val in (("trim_s", trim_s), ("min_run_s", min_run_s), ("jump_window_s", jump_window_s),
+                      ("duplicate_min_s", duplicate_min_s), ("duplicate_tolerance", duplicate_tolerance)):
         if not np.isfinite(val) or val < 0:
-            raise InputError(f"{name} must be a non-negative number of seconds, got {val!r}")
+            raise InputError(f"{name} must be a non-negative number (seconds or metres), got {val!r}")
     rate = trial.rate
     pos = np.array(trial.positions, copy=True)
     present = trial.mask.copy()
+    duplicates: dict[int, int] = {}
+    if duplicate_tolerance > 0:
+        duplicates = _merge_duplicates(
+            trial.labels, pos, present, tolerance=duplicate_tolerance,
+            min_frames=max(1, int(round(duplicate_min_s * rate))),
+        )
     n_frames, n_markers = present.shape
-    before = present.sum(axis=0)
+    before = trial.mask.sum(axis=0)
     # Trials fitted together (combine_trials) are cleaned each on its own frames: the
     # junction between two recordings is not a jump, and a run ending there is not a gap edge.
     bounds = tuple(trial.metadata.get("trial_bounds", ((0, n_frames),)))
@@ -241,7 +343,15 @@ def clean(
 
     dropped: dict[str, str] = {}
     for m, lab in enumerate(trial.labels):
-        if before[m] == 0:
+        if m in duplicates:
+            kept = trial.labels[duplicates[m]]
+            both = trial.mask[:, m] & trial.mask[:, duplicates[m]]
+            gap = np.linalg.norm(trial.positions[both, m] - trial.positions[both, duplicates[m]], axis=-1).max()
+            dropped[lab] = (
+                f"duplicate of {kept}: within {gap * 1000:.2f} mm of it in all {int(both.sum())} frames "
+                f"both are seen (merged into {kept})"
+            )
+        elif before[m] == 0:
             dropped[lab] = "never present"
         elif longest[m] < min_run_s:
             dropped[lab] = f"longest contiguous run {longest[m]:.3f} s < min_run_s={min_run_s} s"
@@ -265,7 +375,10 @@ def clean(
             jump_threshold=jump_threshold,
             jump_mad_factor=jump_mad_factor,
             jump_window_s=jump_window_s,
+            duplicate_tolerance=duplicate_tolerance,
+            duplicate_min_s=duplicate_min_s,
         ),
+        duplicates={trial.labels[m]: trial.labels[k] for m, k in duplicates.items()},
     )
     cleaned = trial.replace(
         positions=pos[:, keep], labels=tuple(np.asarray(trial.labels, dtype=object)[keep])

@@ -120,7 +120,8 @@ class SkeletonResult:
         return self.topology.joint_positions
 
     def marker_segment_input(self) -> np.ndarray:
-        """Segment of every *input* marker (-1 if dropped by cleaning or merged away)."""
+        """Segment of every *input* marker (-1 if dropped by cleaning; a merged or duplicate
+        label has its physical marker's segment)."""
         index = {lab: i for i, lab in enumerate(self.segmentation.labels)}
         phys = self.physical_input()
         out = np.full(len(self.input_labels), -1, dtype=int)
@@ -132,16 +133,22 @@ class SkeletonResult:
         return out
 
     def physical_input(self) -> np.ndarray:
-        """Physical-marker index (into ``trial.labels``) of every input label, -1 if none."""
+        """Physical-marker index (into ``trial.labels``) of every input label, -1 if none.
+
+        A duplicate label merged by cleaning maps to the marker it was merged into."""
+        index = {lab: i for i, lab in enumerate(self.trial.labels)}
+        copy_of = self.cleaning.duplicates if self.cleaning is not None else {}
+
+        def find(lab: str) -> int:
+            while lab not in index and lab in copy_of:
+                lab = copy_of[lab]
+            return index.get(lab, -1)
+
         if self.label_mapping is not None:
             physical = np.asarray(self.label_mapping.physical)
             merged = tuple(self.label_mapping.physical_labels)
-            index = {lab: i for i, lab in enumerate(self.trial.labels)}
-            return np.array(
-                [index.get(merged[p], -1) if p >= 0 else -1 for p in physical], dtype=int
-            )
-        index = {lab: i for i, lab in enumerate(self.trial.labels)}
-        return np.array([index.get(lab, -1) for lab in self.input_labels], dtype=int)
+            return np.array([find(merged[p]) if p >= 0 else -1 for p in physical], dtype=int)
+        return np.array([find(lab) for lab in self.input_labels], dtype=int)
 
     def bone_lengths(self) -> dict[str, float]:
         """Distance between the two joints of every segment with two or more joints.
@@ -200,6 +207,9 @@ class SkeletonResult:
                 f"  segment {self.segment_names[g]} is not rigid: {a} and {b} move relative to each other "
                 f"(distance std {1e3 * std:.1f} mm); consider n_segments (--segments)"
             )
+        if self.cleaning is not None and self.cleaning.duplicates:
+            pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
+            lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
         for name, group in zip(self.segment_names, self.segmentation.groups):
             lines.append(f"  {name:>8}: {', '.join(group)}")
         from ._anchored_centres import MIN_EXERCISE_DEG
@@ -506,7 +516,9 @@ def _clean_merged(work: Trial, report: CleaningReport | None, min_run_s: float |
     if min_run_s is None:
         return work, report
     work, after = clean(work, trim_s=0.0, reject_jumps=False, min_run_s=min_run_s)
-    return work, dataclasses.replace(report, dropped={**report.dropped, **after.dropped})
+    return work, dataclasses.replace(
+        report, dropped={**report.dropped, **after.dropped}, duplicates={**report.duplicates, **after.duplicates}
+    )
 
 
 def _segment(work: Trial, n_segments: int | None, seed: int, segment_kwargs: dict[str, Any] | None) -> Segmentation:

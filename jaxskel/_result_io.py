@@ -19,7 +19,8 @@ Schema version 1 (documented in the README, "Result file"):
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded;
 * ``/skeleton`` and ``/motion`` (when fitted, see the README);
 * ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
-  ``timings`` as attributes, the cleaning report, settings.
+  ``timings`` as attributes, the cleaning report (``cleaning/duplicates`` and
+  ``duplicate_of``: labels merged as copies of another), settings.
 
 Everything is written to a temporary file and renamed into place, so an
 interrupted write never leaves a file that looks complete.
@@ -190,6 +191,8 @@ def save_result(
                 _put(c, "longest_run_s", rep.longest_run_s)
                 _put(c, "dropped", list(rep.dropped))
                 _put(c, "dropped_reason", list(rep.dropped.values()))
+                _put(c, "duplicates", np.asarray(list(rep.duplicates), dtype=str))
+                _put(c, "duplicate_of", np.asarray(list(rep.duplicates.values()), dtype=str))
             for name, writer in (extra_groups or {}).items():
                 writer(f.create_group(name))
     return path

@@ -86,3 +86,45 @@ def test_synthetic_jumps_found():
 def test_clean_rejects_non_trial():
     with pytest.raises(jaxskel.InputError):
         jaxskel.clean(np.zeros((3, 2, 3)))
+
+
+def test_a_marker_stored_twice_is_merged_into_its_named_label():
+    """HDM05's files carry unnamed copies (``*0``) of named markers. The copy is merged
+    into the named label, fills that label's gap, and is reported; markers 2 mm apart
+    (closer than any two physical markers, so beyond the tolerance only when it is
+    lowered), a copy seen together for under ``duplicate_min_s`` and one that departs
+    once are all kept."""
+    x, rate = smooth_trial()
+    copy = x[:, 1].copy()
+    x[300:330, 1] = np.nan  # the named marker's gap, covered by its copy
+    near = x[:, 2] + np.array([0.0005, 0.0, 0.0])  # 0.5 mm off marker c
+    brief = np.full_like(copy, np.nan)
+    brief[:30] = x[:30, 3]  # a copy of d for 0.25 s only
+    departs = x[:, 0].copy()
+    departs[500] += 0.005  # a copy of a, 5 mm off in one frame
+    trial = jaxskel.Trial(np.concatenate([np.stack([copy, near, brief, departs], 1), x], 1),
+                          ["*0", "*1", "*2", "*3", "a", "b", "c", "d"], rate)
+    cleaned, report = jaxskel.clean(trial, trim_s=0, reject_jumps=False, min_run_s=0)
+    assert report.duplicates == {"*0": "b", "*1": "c"}
+    assert cleaned.labels == ("*2", "*3", "a", "b", "c", "d")
+    b = cleaned.marker_index("b")[0]
+    np.testing.assert_array_equal(cleaned.positions[:, b], copy)  # the gap is filled from the copy
+    assert report.present_before[5] == len(x) - 30 and report.present_after[5] == len(x)
+    assert "duplicate of b" in report.dropped["*0"] and "2 duplicate labels merged" in report.summary()
+    # a tighter tolerance than the 0.5 mm offset keeps c's neighbour; 0 disables the step
+    assert jaxskel.clean(trial, min_run_s=0, duplicate_tolerance=0.0003)[1].duplicates == {"*0": "b"}
+    assert jaxskel.clean(trial, min_run_s=0, duplicate_tolerance=0)[1].duplicates == {}
+    # the copy of d is one when its 0.25 s are enough
+    assert jaxskel.clean(trial, min_run_s=0, duplicate_min_s=0.2)[1].duplicates["*2"] == "d"
+    with pytest.raises(jaxskel.InputError, match="duplicate_tolerance"):
+        jaxskel.clean(trial, duplicate_tolerance=-1.0)
+
+
+def test_duplicates_are_found_whatever_the_marker_order():
+    x, rate = smooth_trial()
+    trial = jaxskel.Trial(np.concatenate([x, x[:, 2:3]], 1), ["a", "b", "c", "d", "c2"], rate)
+    for order in ([0, 1, 2, 3, 4], [4, 3, 2, 1, 0], [2, 4, 0, 3, 1]):
+        _, report = jaxskel.clean(trial.select_markers(order))
+        # equal sample counts, both named: the first of the two in the given order is kept
+        first = "c" if order.index(2) < order.index(4) else "c2"
+        assert report.duplicates == {({"c", "c2"} - {first}).pop(): first}

@@ -76,6 +76,29 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
         jaxskel.load_result(path)
 
 
+def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, linkage_trial, tmp_path):
+    """A marker stored a second time under an unnamed label (as in HDM05's files), the
+    named one with a gap its copy covers: cleaning merges them into the recording the
+    fit saw without a copy, so the skeleton is the same; the copy is reported and has
+    its original's segment and physical marker in the result and the file."""
+    trial, _ = linkage_trial
+    x = np.concatenate([trial.positions, trial.positions[:, :1]], axis=1)
+    x[100:160, 0] = np.nan
+    twice = jaxskel.Trial(x, (*trial.labels, "*9"), trial.rate)
+    result = jaxskel.fit_skeleton(twice)
+    assert result.cleaning.duplicates == {"*9": trial.labels[0]}
+    assert f"duplicate labels merged (one marker stored twice): *9 -> {trial.labels[0]}" in result.summary()
+    np.testing.assert_array_equal(result.segmentation.marker_segment, fitted.segmentation.marker_segment)
+    np.testing.assert_allclose(result.skeleton.bone_lengths, fitted.skeleton.bone_lengths, rtol=1e-9)
+    segment = result.marker_segment_input()
+    assert segment[-1] == segment[0] >= 0 and result.physical_input()[-1] == 0
+    result.save(tmp_path / "twice.h5")
+    back = jaxskel.load_result(tmp_path / "twice.h5")
+    assert back.markers.segment[-1] == segment[0] and back.markers.physical[-1] == 0
+    assert list(back.diagnostics.cleaning.duplicates) == ["*9"]
+    assert list(back.diagnostics.cleaning.duplicate_of) == [trial.labels[0]]
+
+
 def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, capsys):
     trial, _ = linkage_trial
     src = tmp_path / "link.c3d"

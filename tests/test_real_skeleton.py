@@ -66,6 +66,8 @@ def test_hdm05_tree_is_a_human_skeleton(hdm_dg):
     leaves the heel marker alone, and with two or three markers on each neighbour no
     joint of it is feasible but far-off ones (it was jointed to the right forearm). The
     eigengap's 13 is kept and the non-rigid foot is reported."""
+    # the file stores three markers twice, as unnamed *0, *1, *2: cleaning merges them
+    assert hdm_dg.cleaning.duplicates == {"*0": "LFWT", "*1": "CLAV", "*2": "LFHD"}
     parts = segment_parts(hdm_dg.trial.labels, hdm_dg.segmentation.marker_segment)
     assert hdm_dg.n_segments == 13 and hdm_dg.segmentation.count_rule == "eigengap"
     ((_, first, second, _),) = hdm_dg.segmentation.nonrigid_groups()
@@ -78,17 +80,19 @@ def test_hdm05_tree_is_a_human_skeleton(hdm_dg):
 
 def test_hdm05_limb_bones_against_asf(hdm_dg):
     """All six limb bones with both joints in the tree are measured. Today: left shank
-    +5 mm, upper arms +11/+12 mm, right thigh +7 mm (within the 2 cm target), right shank
-    +21, left thigh +33 mm (joints of a 1.7 s take that are barely exercised, markers on
-    the joints). With the paper's per-frame joint centres (``joint_centres="per_frame"``)
-    the right thigh was +122 and the right shank +73 mm. Asserted (a regression guard,
-    not the target): median difference under 4 cm, the sum of the six within 15 %, four
-    bones within 2 cm."""
+    +7 mm, upper arms +11/+10 mm, right thigh +7 mm, right shank +19.7 mm (within the
+    2 cm target), left thigh +20.1 mm (joints of a 1.7 s take that are barely exercised,
+    markers on the joints). While the file's copies of LFWT, CLAV and LFHD counted twice
+    (before duplicate labels were merged) the right shank was +21 and the left thigh
+    +33 mm; with the paper's per-frame joint centres (``joint_centres="per_frame"``) the
+    right thigh was +122 and the right shank +73 mm. Asserted (a regression guard, not
+    the target): every bone within 2.5 cm, the sum of the six within 5 %, four bones
+    within 2 cm."""
     bones = _compare(hdm_dg, DATA / "dynamic_clustering_hdm05" / "HDM_dg.asf")
     assert {"L thigh", "R thigh", "L shank", "R shank", "L upper arm", "R upper arm"} <= set(bones)
     fit, ref = np.array(list(bones.values())).T
-    assert np.median(np.abs(fit - ref)) < 0.04, bones
-    assert abs(fit.sum() - ref.sum()) < 0.15 * ref.sum()
+    assert np.max(np.abs(fit - ref)) < 0.025, bones
+    assert abs(fit.sum() - ref.sum()) < 0.05 * ref.sum()
     assert sum(np.abs(fit - ref) < 0.02) >= 4
 
 
