@@ -6,7 +6,7 @@ frames. Before any fitting, :func:`clean`
 
 0. merges duplicate labels: two labels whose positions coincide (within
    ``duplicate_tolerance``) in every frame where both are seen, over at least
-   ``min_run_s`` of such frames, are one marker stored twice (HDM05's files carry
+   ``duplicate_min_s`` of such frames, are one marker stored twice (HDM05's files carry
    unnamed copies ``*0``, ``*1``, ``*2`` of three named markers). Two physical
    markers can never be that close (their centres are at least a marker diameter,
    >= 3 mm, apart), and a copy would otherwise count twice in every cost. The label

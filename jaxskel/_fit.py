@@ -145,9 +145,19 @@ class SkeletonResult:
             return index.get(lab, -1)
 
         if self.label_mapping is not None:
-            physical = np.asarray(self.label_mapping.physical)
+            # The mapping covers the labels that reached the merge; cleaning may have
+            # dropped others first (never seen, or a copy of another label).
             merged = tuple(self.label_mapping.physical_labels)
-            return np.array([find(merged[p]) if p >= 0 else -1 for p in physical], dtype=int)
+            via = {lab: (merged[p] if p >= 0 else None)
+                   for lab, p in zip(self.label_mapping.labels, np.asarray(self.label_mapping.physical).tolist())}
+
+            def find_merged(lab: str) -> int:
+                while lab not in via and lab in copy_of:
+                    lab = copy_of[lab]
+                target = via.get(lab)
+                return find(target) if target is not None else -1
+
+            return np.array([find_merged(lab) for lab in self.input_labels], dtype=int)
         return np.array([find(lab) for lab in self.input_labels], dtype=int)
 
     def bone_lengths(self) -> dict[str, float]:

@@ -52,3 +52,23 @@ def test_named_recording_with_occlusions_is_not_merged_by_default():
     with pytest.warns(jaxskel.DegenerateMotionWarning, match="not merged"):
         result = jaxskel.fit_skeleton(gappy, rigid=False, ik=False)
     assert result.label_mapping is None and result.trial.n_markers == 9
+
+
+def test_labels_cleaned_away_before_merging_keep_the_input_order(tmp_path):
+    """A passive recording with a slot that is never seen and a label stored twice:
+    cleaning drops both before the label merge, so the merge covers fewer labels than
+    the input. Every input label still gets its physical marker (the copy its
+    original's, the empty slot -1) and the result file is written (it raised an
+    IndexError before)."""
+    trial, _ = synth.simulate(synth.linkage(), duration=15.0, seed=2, noise=0.001, gaps=2, relabel=True)
+    x = np.concatenate([trial.positions, np.full((trial.n_frames, 1, 3), np.nan), trial.positions[:, :1]], 1)
+    raw = jaxskel.Trial(x, (*trial.labels, "*999", "*998"), trial.rate)
+    result = jaxskel.fit_skeleton(raw, rigid=False, ik=False, merge_labels=True)
+    assert result.cleaning.dropped["*999"] == "never present"
+    assert result.cleaning.duplicates == {"*998": trial.labels[0]}
+    phys = result.physical_input()
+    assert len(phys) == raw.n_markers and phys[-2] == -1 and phys[-1] == phys[0] >= 0
+    segment = result.marker_segment_input()
+    assert segment[-2] == -1 and segment[-1] == segment[0] >= 0
+    result.save(tmp_path / "r.h5")
+    np.testing.assert_array_equal(jaxskel.load_result(tmp_path / "r.h5").markers.physical, phys)
