@@ -44,6 +44,7 @@ _LAZY = {
     "ConvergenceWarning": "_errors",
     "UnitsWarning": "_errors",
     "DegenerateMotionWarning": "_errors",
+    "NonRigidMarkerWarning": "_errors",
     # data model and I/O
     "Trial": "_trial",
     "bucket_size": "_padding",

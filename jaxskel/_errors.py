@@ -48,3 +48,9 @@ class UnitsWarning(UserWarning):
 class DegenerateMotionWarning(UserWarning):
     """Part of the motion carries too little information (e.g. a joint that barely moves);
     the affected result is reported but should not be trusted."""
+
+
+class NonRigidMarkerWarning(UserWarning):
+    """The fitted rigid skeleton leaves some markers far off (residual well above the
+    recording's median): soft tissue, a marker on a joint, or two segments clustered as
+    one; the markers are named with a count to compare."""

@@ -24,7 +24,7 @@ import numpy as np
 
 from ._clean import CleaningReport, clean
 from ._relabel import needs_merging
-from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
+from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
 from ._io import _median_extent
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._topology import Topology, fit_topology, joint_costs
@@ -236,6 +236,9 @@ class SkeletonResult:
             )
         for u in self.untested_joints():
             lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
+        nonrigid = _nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
+        if nonrigid is not None:
+            lines.append(f"  {nonrigid}")
         bones = self.bone_lengths()
         if bones:
             lines.append("bone lengths [m]:")
@@ -273,6 +276,23 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
             DegenerateMotionWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
+
+
+def _nonrigid_text(skeleton: Any, names: Sequence[str], n_segments: int) -> str | None:
+    """One line on the markers the rigid skeleton flags as not rigid, or ``None``."""
+    if not skeleton.nonrigid_markers:
+        return None
+    labels = list(skeleton.marker_labels)
+    where = [labels.index(lab) for lab in skeleton.nonrigid_markers]
+    items = ", ".join(
+        f"{labels[i]} on {names[int(skeleton.marker_segment[i])]} ({1e3 * skeleton.marker_rms[i]:.1f} mm)"
+        for i in where
+    )
+    return (
+        f"not rigid on their segment: {items}; the rigid skeleton's residual RMS, against a median of "
+        f"{1e3 * np.nanmedian(skeleton.marker_rms):.1f} mm. Soft tissue, a marker on a joint, or two segments "
+        f"clustered as one: compare n_segments={n_segments + 1} (--segments)"
+    )
 
 
 def _untested_text(u: Any, names: Sequence[str], sizes: np.ndarray) -> str:
@@ -640,6 +660,9 @@ def finish_fit(
                 report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
                 skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
                 _warn_unexercised(anchored.exercise, [f"{names[p]}-{names[c]}" for p, c in topology.edges])
+            nonrigid = _nonrigid_text(skeleton, names, segmentation.n_segments)
+            if nonrigid is not None:
+                warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=4)
     with prep.stage("ik", on_stage):
         if prep.settings.get("ik", True) and skeleton is not None:
             from ._ik import inverse_kinematics
