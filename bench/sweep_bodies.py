@@ -10,8 +10,9 @@ gaps per marker:
 Each is fitted with :func:`jaxskel.fit_skeleton` defaults (no IK) and judged on the
 truth: ``seg`` the marker grouping is exact, ``tree`` the fitted edges (segments named by
 the true segment most of their markers sit on) are exactly the true joints. Printed with
-the segment counts, the markers the rigid skeleton flags (``NonRigidMarkerWarning``) and
-the other warnings, so a wrong answer that says nothing stands out.
+the segment counts (and whether the count grew after the rigid fit, :mod:`jaxskel._split_refit`),
+the markers the rigid skeleton flags (``NonRigidMarkerWarning``) and the other warnings, so a
+wrong answer that says nothing stands out.
 
 Usage::
 
@@ -71,6 +72,8 @@ def run_one(kind: str, size: int, seed: int) -> dict:
         "true_segments": len(truth.edges) + 1,
         "seg": _partition(labels, fitted) == _partition(labels, true_seg),
         "tree": edges == {frozenset(map(int, e)) for e in truth.edges},
+        "count_rule": result.segmentation.count_rule,
+        "split_from": result.segmentation.split_from,
         "flagged": list(result.skeleton.nonrigid_markers) if result.skeleton is not None else [],
         "warnings": sorted({w.category.__name__ for w in caught}),
         "seconds": round(seconds, 1),
@@ -88,6 +91,8 @@ def main() -> None:
         row = run_one(kind, size, seed)
         rows.append(row)
         note = ", ".join(row["warnings"]) + (f" {row['flagged']}" if row["flagged"] else "")
+        if row["count_rule"] == "split":
+            note = f"(split from {row['split_from']} after the rigid fit) " + note
         print(f"{kind:>12} {size:>4} {seed:>4} {row['segments']:>4}/{row['true_segments']:<4} "
               f"{row['seg']!s:>5} {row['tree']!s:>5}  {note}", flush=True)
     wrong = [r for r in rows if not (r["seg"] and r["tree"])]

@@ -367,18 +367,22 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
 
 def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
             keep: bool) -> TrialOutcome:
-    from ._fit import _confirm_merges_and_refit, finish_fit, fit_joints_and_skeleton
+    from ._fit import _confirm_merges_and_refit, add_motion, finish_fit, fit_joints_and_skeleton
+    from ._split_refit import fit_growing_count
 
     item, prep = work.item, work.prep
+    # as fit_skeleton: a segment the rigid skeleton cannot hold grows the automatic count, and
+    # the skeleton checks the label merges; such refits run unbatched (joint and skeleton
+    # stages of this one trial)
+    refit = functools.partial(
+        fit_joints_and_skeleton, alpha=options["alpha"], alpha_tree=options["alpha_tree"],
+        method=options["method"], root=options["root"], topology_frames=options["topology_frames"],
+    )
     with DEVICE_LOCK:
-        result = finish_fit(prep, work.topology)
+        result = fit_growing_count(
+            prep, lambda p: finish_fit(p, work.topology), refit, add_motion, seed=options["seed"], segment_kwargs=None,
+        )
         if options["confirm_merges"] and prep.label_mapping is not None and result.motion is not None:
-            # as fit_skeleton: the skeleton checks the label merges; a corrected merge is refitted
-            # (the refit runs unbatched: joint and skeleton stages of this one trial)
-            refit = functools.partial(
-                fit_joints_and_skeleton, alpha=options["alpha"], alpha_tree=options["alpha_tree"],
-                method=options["method"], root=options["root"], topology_frames=options["topology_frames"],
-            )
             result = _confirm_merges_and_refit(
                 prep, result, refit, min_run_s=0.5 if options["clean_data"] else None,
                 n_segments=options["n_segments"], seed=options["seed"], segment_kwargs=None,

@@ -27,6 +27,7 @@ from ._relabel import needs_merging
 from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
 from ._io import _median_extent
 from ._segment import Segmentation, combine_trials, segment_markers
+from ._split_refit import fit_growing_count
 from ._topology import Topology, fit_topology, joint_costs
 from ._trial import Trial
 
@@ -210,6 +211,8 @@ class SkeletonResult:
             "eigengap": "eigengap",
             "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
             f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
+            "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
+            f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
         }[seg.count_rule]
         lines.append(f"segment count: {rule}; largest eigengaps after k = {gaps}")
         for g, a, b, std in seg.nonrigid_groups():
@@ -359,7 +362,11 @@ def fit_skeleton(
         One :class:`Trial`, or several trials of one subject with one marker set
         (fitted together: e.g. a range-of-motion trial plus a walk).
     n_segments
-        Number of rigid segments, or ``None`` for the eigengap choice.
+        Number of rigid segments, or ``None`` for an automatic count: the eigengap's,
+        grown until every group is rigid (:func:`jaxskel.segment_markers`), and grown
+        again by one, with the fit rerun, while a segment holds two or more markers the
+        rigid skeleton cannot hold (:mod:`jaxskel._split_refit`; kept only if fewer
+        markers are flagged). A given count is never changed.
     root
         Root segment index or a marker label on it; default the tree's centre.
     clean_data
@@ -430,7 +437,10 @@ def fit_skeleton(
         fit_joints_and_skeleton, alpha=alpha, alpha_tree=alpha_tree, method=method, root=root,
         topology_frames=topology_frames, segment_names=segment_names, on_stage=on_stage,
     )
-    result = joints_and_skeleton(prep)
+    result = fit_growing_count(
+        prep, joints_and_skeleton, joints_and_skeleton, functools.partial(add_motion, on_stage=on_stage),
+        seed=seed, segment_kwargs=segment_kwargs, on_stage=on_stage, stacklevel=2,
+    )
     if confirm_merges and prep.label_mapping is not None and result.motion is not None:
         result = _confirm_merges_and_refit(
             prep, result, joints_and_skeleton,
@@ -582,6 +592,25 @@ def fit_joints_and_skeleton(
     return finish_fit(prep, topology, segment_names=segment_names, on_stage=on_stage)
 
 
+def _inverse_kinematics(prep: PreparedFit, skeleton: Any, work: Trial, on_stage: Any) -> Any:
+    """The IK stage: the skeleton's motion over ``work``, or ``None`` (no skeleton, or ``ik=False``)."""
+    with prep.stage("ik", on_stage):
+        if not (prep.settings.get("ik", True) and skeleton is not None):
+            return None
+        from ._ik import inverse_kinematics
+        from ._ik_batch import solver_shape
+
+        # the refinement's slot count: its compiled solver serves the IK too
+        slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
+        return inverse_kinematics(skeleton, work, slots=slots)
+
+
+def add_motion(prep: PreparedFit, result: SkeletonResult, on_stage: Any = None) -> SkeletonResult:
+    """``result`` (fitted without IK) with the IK stage run as ``prep.settings`` ask."""
+    motion = _inverse_kinematics(prep, result.skeleton, result.trial, on_stage)
+    return dataclasses.replace(result, motion=motion, timings=dict(prep.timings))
+
+
 def _confirm_merges_and_refit(
     prep: PreparedFit,
     result: SkeletonResult,
@@ -663,15 +692,9 @@ def finish_fit(
             nonrigid = _nonrigid_text(skeleton, names, segmentation.n_segments)
             if nonrigid is not None:
                 warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=4)
-    with prep.stage("ik", on_stage):
-        if prep.settings.get("ik", True) and skeleton is not None:
-            from ._ik import inverse_kinematics
-            from ._ik_batch import solver_shape
-
-            # the refinement's slot count: its compiled solver serves the IK too
-            slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
-            motion = inverse_kinematics(skeleton, work, slots=slots)
-
+    # without IK (a fit that may be segmented again first, :mod:`jaxskel._split_refit`) the
+    # stage is left to :func:`add_motion`
+    motion = _inverse_kinematics(prep, skeleton, work, on_stage) if prep.settings.get("ik", True) else None
     return SkeletonResult(
         input_labels=prep.input_labels,
         trial=work,

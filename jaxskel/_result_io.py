@@ -9,8 +9,9 @@ Schema version 1 (documented in the README, "Result file"):
   identity otherwise, -1 dropped), ``used_labels`` (M',) the markers after
   cleaning/merging, ``positions`` (F, M', 3) the cleaned positions (NaN missing);
 * ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
-  attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid), ``max_segments``,
-  ``rigid_limit`` (metres), ``sigma``;
+  ``split_markers`` (the flagged markers that grew the count, see :mod:`jaxskel._split_refit`);
+  attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / split), ``max_segments``,
+  ``rigid_limit`` (metres), ``sigma``, ``split_from`` (the automatic count before it grew, 0 if it did not);
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
   ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
   (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
@@ -132,6 +133,8 @@ def save_result(
             g.attrs["max_segments"] = seg.max_segments
             g.attrs["rigid_limit"] = seg.rigid_limit
             g.attrs["sigma"] = seg.sigma
+            g.attrs["split_from"] = seg.split_from
+            _put(g, "split_markers", np.asarray(seg.split_markers, dtype=str))
 
             g = f.create_group("topology")
             _put(g, "joint_cost", topo.pair_costs.cost)

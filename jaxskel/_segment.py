@@ -141,13 +141,21 @@ class Segmentation:
     unobserved_pairs
         (i, j) marker pairs never seen together often enough to estimate A.
     count_rule
-        How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper), or
-        ``"rigid"`` (grown from the eigengap's count until every group is rigid).
+        How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper),
+        ``"rigid"`` (grown from the eigengap's count until every group is rigid), or
+        ``"split"`` (grown past ``split_from`` after the rigid skeleton could not hold
+        ``split_markers`` on their segments: :func:`jaxskel.fit_skeleton`).
     max_segments
         The upper bound of the eigengap search and of the growth.
     rigid_limit
         Largest A_ij (metres) two markers of one group may show (``rigid_ratio *
         sigma``); ``inf`` when the check is off.
+    split_from
+        With ``count_rule == "split"``: the automatic count (eigengap or rigid) the
+        fit started from; 0 otherwise.
+    split_markers
+        With ``count_rule == "split"``: the markers the rigid skeleton flagged, two or
+        more on one segment, that made the count grow.
     """
 
     labels: tuple[str, ...]
@@ -164,6 +172,8 @@ class Segmentation:
     count_rule: str = "eigengap"
     max_segments: int = 30
     rigid_limit: float = float("inf")
+    split_from: int = 0
+    split_markers: tuple[str, ...] = ()
 
     @property
     def groups(self) -> list[tuple[str, ...]]:

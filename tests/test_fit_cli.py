@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+import warnings
 
 import h5py
 import numpy as np
@@ -99,27 +100,44 @@ def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, li
     assert list(back.diagnostics.cleaning.duplicate_of) == [trial.labels[0]]
 
 
-def test_two_segments_clustered_as_one_are_named_with_the_count_to_compare():
+def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     """A random 12-segment tree whose joint 9-10 moves its markers little against each
     other (largest distance std 7 mm, 5x the 1.4 mm noise floor but under the 9 mm
     rigidity limit): the eigengap (11, gap 0.32 against 0.20 at 12) puts both segments in
-    one group. The rigid skeleton cannot hold that group's markers, so the fit names
-    them (warning and summary) with the count to try; that count gives the true groups."""
+    one group. The rigid skeleton cannot hold that group (two of its markers flagged), so
+    the automatic count grows to 12 and the fit runs again: the true groups, nothing
+    flagged, the IK on the kept skeleton, the discarded fit's warning not shown. Given
+    ``n_segments=11`` the count stays, and the fit names the markers with the count to try."""
     from helpers import partition
 
     trial, truth = synth.simulate(synth.random_tree(12, seed=3), duration=20.0, seed=3, noise=0.001, gaps=2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(trial)
+    assert not [w for w in caught if issubclass(w.category, jaxskel.NonRigidMarkerWarning)]
+    seg = result.segmentation
+    assert (seg.count_rule, seg.split_from, result.n_segments, seg.eigengap_segments) == ("split", 11, 12, 11)
+    assert seg.split_markers and all(lab.startswith(("S9M", "S10M")) for lab in seg.split_markers)
+    idx = [trial.labels.index(lab) for lab in result.trial.labels]
+    assert partition(result.trial.labels, seg.marker_segment) == partition(
+        result.trial.labels, truth.marker_segment[idx])
+    assert result.skeleton.nonrigid_markers == () and "not rigid on their segment" not in result.summary()
+    assert "grown from 11 (automatic)" in result.summary()
+    assert result.motion is not None and result.settings["ik"] is True
+    assert result.motion.rotations.shape[1] == 12 and len(result.edges) == 11
+    out = tmp_path / "split.h5"
+    result.save(out)
+    with h5py.File(out) as f:
+        assert f["segments"].attrs["count_rule"] == "split" and f["segments"].attrs["split_from"] == 11
+        assert [v.decode() for v in f["segments/split_markers"][()]] == list(seg.split_markers)
+
     with pytest.warns(jaxskel.NonRigidMarkerWarning, match="n_segments=12") as caught:
-        result = jaxskel.fit_skeleton(trial, ik=False)
-    assert result.n_segments == 11
-    flagged = set(result.skeleton.nonrigid_markers)
-    assert flagged and all(lab.startswith(("S9M", "S10M")) for lab in flagged), flagged
+        given = jaxskel.fit_skeleton(trial, 11, ik=False)
+    assert given.n_segments == 11 and given.segmentation.count_rule == "given"
+    flagged = set(given.skeleton.nonrigid_markers)
+    assert len(flagged) >= 2 and all(lab.startswith(("S9M", "S10M")) for lab in flagged), flagged
     assert all(lab in str(caught[0].message) for lab in flagged)
-    assert "not rigid on their segment" in result.summary() and "n_segments=12" in result.summary()
-    again = jaxskel.fit_skeleton(trial, 12, ik=False)
-    idx = [trial.labels.index(lab) for lab in again.trial.labels]
-    assert partition(again.trial.labels, again.segmentation.marker_segment) == partition(
-        again.trial.labels, truth.marker_segment[idx])
-    assert again.skeleton.nonrigid_markers == () and "not rigid on their segment" not in again.summary()
+    assert "not rigid on their segment" in given.summary() and "n_segments=12" in given.summary()
 
 
 def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, capsys):

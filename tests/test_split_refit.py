@@ -1,0 +1,167 @@
+"""Growing the automatic segment count after the rigid fit (:mod:`jaxskel._split_refit`):
+when it grows, which fit is kept, which warnings the user sees. The fits are stubs here;
+the end-to-end case (a random tree whose eigengap joins two segments) is in
+``test_fit_cli.py``."""
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+from jaxskel import synth
+from jaxskel._fit import PreparedFit
+from jaxskel._segment import segment_markers
+from jaxskel._split_refit import MAX_SPLITS, crowded_nonrigid, fit_growing_count
+
+
+@dataclasses.dataclass
+class _Skeleton:
+    marker_labels: tuple
+    marker_segment: np.ndarray
+    nonrigid_markers: tuple
+
+
+@dataclasses.dataclass
+class _Result:
+    trial: object
+    segmentation: object
+    skeleton: object
+    settings: dict
+    motion: object = None
+
+
+class _Note(UserWarning):
+    pass
+
+
+@pytest.fixture(scope="module")
+def trial():
+    # the eigengap joins two of its segments (test_fit_cli.py); one more splits them, no marker alone
+    trial, _ = synth.simulate(synth.random_tree(12, seed=3), duration=20.0, seed=3, noise=0.001, gaps=2)
+    return trial
+
+
+def _prep(trial, **settings):
+    seg = segment_markers(trial, settings.get("n_segments"))
+    return PreparedFit(
+        input_labels=trial.labels, trial=trial, cleaning=None, label_mapping=None, segmentation=seg,
+        trial_bounds=((0, trial.n_frames),), timings={}, settings={"n_segments": None, "ik": True, **settings},
+    )
+
+
+def _result(prep, seg, flagged):
+    labels = tuple(prep.trial.labels)
+    skeleton = _Skeleton(labels, np.asarray(seg.marker_segment), tuple(flagged))
+    return _Result(prep.trial, seg, skeleton, dict(prep.settings))
+
+
+def test_crowded_markers_are_the_flagged_ones_sharing_a_segment():
+    labels = ("a", "b", "c", "d", "e")
+    sk = _Skeleton(labels, np.array([0, 0, 1, 1, 2]), ("e", "b", "a", "c"))
+    assert crowded_nonrigid(sk) == ("a", "b")
+    assert crowded_nonrigid(_Skeleton(labels, np.array([0, 0, 1, 1, 2]), ("a", "c", "e"))) == ()
+    assert crowded_nonrigid(None) == ()
+
+
+def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(trial):
+    prep = _prep(trial)
+    m0 = prep.segmentation.n_segments
+    labels = trial.labels
+    first_group = [lab for lab, s in zip(labels, prep.segmentation.marker_segment) if s == 0][:2]
+    calls, ik_settings = [], []
+
+    def first(p):
+        assert p.settings["ik"] is False  # IK waits for the kept fit
+        warnings.warn("from the first fit", _Note)
+        return _result(p, p.segmentation, first_group)
+
+    def refit(p):
+        calls.append(p.segmentation.n_segments)
+        warnings.warn(f"from the refit with {p.segmentation.n_segments}", _Note)
+        return _result(p, p.segmentation, ())
+
+    def add_motion(p, r):
+        ik_settings.append(p.settings["ik"])
+        return dataclasses.replace(r, motion="moved")
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fit_growing_count(prep, first, refit, add_motion, seed=0, segment_kwargs=None, stacklevel=1)
+    assert calls == [m0 + 1]
+    seg = out.segmentation
+    assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 1)
+    assert seg.split_markers == tuple(sorted(first_group, key=labels.index))
+    assert seg.eigengap_segments == prep.segmentation.eigengap_segments
+    assert out.motion == "moved" and ik_settings == [True] and out.settings["ik"] is True
+    # only the kept fit's warnings reach the user, pointing at the caller's line
+    assert [str(w.message) for w in caught] == [f"from the refit with {m0 + 1}"]
+    assert caught[0].filename == __file__
+    assert "split" in prep.timings
+
+
+def test_a_split_that_does_not_remove_flags_is_discarded(trial):
+    prep = _prep(trial)
+    group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
+
+    def first(p):
+        warnings.warn("kept", _Note)
+        return _result(p, p.segmentation, group)
+
+    def refit(p):  # as many flags as before: not better
+        warnings.warn("discarded", _Note)
+        return _result(p, p.segmentation, group)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fit_growing_count(prep, first, refit, lambda p, r: r, seed=0, segment_kwargs=None)
+    assert out.segmentation is prep.segmentation
+    assert [str(w.message) for w in caught] == ["kept"]
+
+
+def test_a_given_count_never_grows_and_growth_is_bounded(trial):
+    labels = trial.labels
+    calls = []
+
+    def flagging(n_flags):
+        """A stub fit whose skeleton holds every marker on one segment and flags ``n_flags``."""
+        def fit(p):
+            calls.append(p.segmentation.n_segments)
+            r = _result(p, p.segmentation, labels[:n_flags])
+            r.skeleton.marker_segment = np.zeros(len(labels), dtype=int)
+            return r
+        return fit
+
+    given = _prep(trial, n_segments=11)
+    out = fit_growing_count(given, flagging(4), flagging(0), lambda p, r: r, seed=0, segment_kwargs=None)
+    assert calls == [11] and out.segmentation.count_rule == "given"
+
+    # every split removes a flag but leaves two or more on one segment: MAX_SPLITS refits
+    calls.clear()
+    counts = iter(range(2 + MAX_SPLITS + 3, 0, -1))
+    out = fit_growing_count(
+        _prep(trial), flagging(next(counts)), lambda p: flagging(next(counts))(p), lambda p, r: r,
+        seed=0, segment_kwargs=None,
+    )
+    assert calls == [11 + k for k in range(MAX_SPLITS + 1)]
+    assert out.segmentation.n_segments == 11 + MAX_SPLITS and out.segmentation.split_from == 11
+
+
+def test_a_split_that_leaves_a_marker_alone_is_discarded():
+    """Three markers per rod: a fourth segment takes a marker alone (always "rigid", its
+    joint often untestable), so the split is not kept even though it flags nothing."""
+    trial, _ = synth.simulate(synth.linkage(), duration=8.0, seed=2, noise=0.001)
+    prep = _prep(trial)
+    assert prep.segmentation.n_segments == 3
+    group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
+    grown = []
+
+    def refit(p):
+        grown.append(p.segmentation)
+        return _result(p, p.segmentation, ())
+
+    out = fit_growing_count(
+        prep, lambda p: _result(p, p.segmentation, group), refit, lambda p, r: r, seed=0, segment_kwargs=None
+    )
+    assert len(grown) == 1 and 1 in np.bincount(grown[0].marker_segment)
+    assert out.segmentation is prep.segmentation
