@@ -45,6 +45,7 @@ _LAZY = {
     "UnitsWarning": "_errors",
     "DegenerateMotionWarning": "_errors",
     "NonRigidMarkerWarning": "_errors",
+    "AmbiguousTreeWarning": "_errors",
     # data model and I/O
     "Trial": "_trial",
     "bucket_size": "_padding",
@@ -63,6 +64,8 @@ _LAZY = {
     "Topology": "_topology",
     "UntestedJoint": "_topology",
     "untested_joints": "_topology",
+    "NearTie": "_near_ties",
+    "near_ties": "_near_ties",
     "solve_joint": "_jointcost",
     "solve_joints": "_jointcost",
     "JointSolution": "_jointcost",

@@ -22,6 +22,10 @@ from pathlib import Path
 __all__ = ["main"]
 
 
+#: Bound of the persistent compilation cache (bytes; a fit's programs take ~2 MB).
+CACHE_MAX_BYTES = 2 * 1024**3
+
+
 def _enable_compile_cache() -> None:
     """Persistent JAX compilation cache, so a second process skips compilation.
 
@@ -31,17 +35,26 @@ def _enable_compile_cache() -> None:
     cache = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
     if not cache:
         return
+    try:
+        # JAX locks cache entries only with filelock and a size bound (its LRU bookkeeping).
+        # Unbounded, entries are written in place unlocked, and a second process reading one
+        # mid-write (parallel fits sharing the cache, pytest -n 2) crashed in XLA's
+        # deserialisation: a segfault, not an exception. No filelock: no cache.
+        import filelock  # noqa: F401
+    except ImportError:
+        return
     import jax
 
     try:
         Path(cache).mkdir(parents=True, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
         # Every program, however quick to compile: a fit runs ~90 small ones (eager
         # array ops between the jitted stages), each costing a lowering and an XLA
         # compile per process. Cached, a new process of a 10 s fit took 11.8-12.0 s
         # instead of 13.9-16.1 s (2 MB of cache instead of 1.7 MB).
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        jax.config.update("jax_compilation_cache_dir", cache)  # last: only once locked and bounded
     except (OSError, AttributeError):  # read-only home or an old jax: run without the cache
         pass
 

@@ -50,6 +50,12 @@ class DegenerateMotionWarning(UserWarning):
     the affected result is reported but should not be trusted."""
 
 
+class AmbiguousTreeWarning(UserWarning):
+    """A joint of the fitted tree costs about as much as a rival pair the tree would
+    joint instead: the margin is within the sampling noise of the two costs, so the data
+    do not say which is right (:func:`jaxskel.near_ties`)."""
+
+
 class NonRigidMarkerWarning(UserWarning):
     """The fitted rigid skeleton leaves some markers far off (residual well above the
     recording's median): soft tissue, a marker on a joint, or two segments clustered as

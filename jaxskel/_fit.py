@@ -24,7 +24,9 @@ import numpy as np
 
 from ._clean import CleaningReport, clean
 from ._relabel import needs_merging
-from ._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
+from ._errors import (
+    AmbiguousTreeWarning, DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning,
+)
 from ._io import _median_extent
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._split_refit import fit_growing_count
@@ -197,6 +199,13 @@ class SkeletonResult:
 
         return untested_joints(self.segmentation, self.topology)
 
+    def near_ties(self, z: float = 2.0) -> list:
+        """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
+        the tree would joint instead (:func:`jaxskel.near_ties`)."""
+        from ._near_ties import near_ties
+
+        return near_ties(self.trial, self.segmentation, self.topology, z=z)
+
     def joint_name(self, j: int) -> str:
         p, c = self.edges[j]
         return f"{self.segment_names[p]}-{self.segment_names[c]}"
@@ -239,6 +248,8 @@ class SkeletonResult:
             )
         for u in self.untested_joints():
             lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
+        for tie in self.near_ties():
+            lines.append(f"  {_near_tie_text(tie, self.segment_names)}")
         nonrigid = _nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
         if nonrigid is not None:
             lines.append(f"  {nonrigid}")
@@ -315,6 +326,28 @@ def _warn_untested(untested: list, names: Sequence[str], sizes: np.ndarray) -> N
             "the tree may attach sparsely marked segments to the wrong neighbour:\n"
             + "\n".join(_untested_text(u, names, sizes) for u in untested),
             DegenerateMotionWarning,
+            stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
+        )
+
+
+def _near_tie_text(tie: Any, names: Sequence[str]) -> str:
+    """One line on a :class:`jaxskel.NearTie`."""
+    (p, c), (a, b) = tie.edge, tie.rival
+    return (
+        f"near tie: {names[p]}-{names[c]} ({1e6 * tie.cost:.3f} mm^2) against {names[a]}-{names[b]} "
+        f"({1e6 * tie.rival_cost:.3f} mm^2, {100 * tie.margin:+.1f} %, within the costs' sampling noise of "
+        f"{100 * tie.noise:.1f} %): the tree could joint either"
+    )
+
+
+def _warn_near_ties(ties: list, names: Sequence[str]) -> None:
+    """An :class:`AmbiguousTreeWarning` naming the tree joints the costs cannot tell from a rival."""
+    if ties:
+        warnings.warn(
+            f"{len(ties)} joint(s) of the tree are not settled by the data:\n"
+            + "\n".join(_near_tie_text(t, names) for t in ties)
+            + "\nCheck them (summary, --plot), or fit with a trial that exercises those joints",
+            AmbiguousTreeWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
 
@@ -664,6 +697,9 @@ def finish_fit(
     from ._topology import untested_joints
 
     _warn_untested(untested_joints(segmentation, topology), names, segmentation.segment_sizes)
+    from ._near_ties import near_ties
+
+    _warn_near_ties(near_ties(work, segmentation, topology), names)
     skeleton = motion = None
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):

@@ -15,7 +15,8 @@ Schema version 1 (documented in the README, "Result file"):
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
   ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
   (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
-  (n, 2) pairs with ``infeasible_reason`` (n,) str;
+  (n, 2) pairs with ``infeasible_reason`` (n,) str, ``untested``/``untested_std``, ``near_ties`` (t, 3)
+  (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance);
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded;
 * ``/skeleton`` and ``/motion`` (when fitted, see the README);
@@ -151,6 +152,11 @@ def save_result(
             untested = untested_joints(seg, topo)
             _put(g, "untested", np.asarray([u[:3] for u in untested], dtype=int).reshape(-1, 3))
             _put(g, "untested_std", np.asarray([u[3:] for u in untested], dtype=float).reshape(-1, 2))
+            from ._near_ties import near_ties
+
+            ties = near_ties(result.trial, seg, topo)
+            _put(g, "near_ties", np.asarray([[t.joint, *t.rival] for t in ties], dtype=int).reshape(-1, 3))
+            _put(g, "near_ties_margin", np.asarray([[t.margin, t.noise] for t in ties], dtype=float).reshape(-1, 2))
 
             g = f.create_group("joints")
             _put(g, "positions", topo.joint_positions)

@@ -1,6 +1,7 @@
 """fit_skeleton end to end: result object, HDF5 result file, command line, errors."""
 
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -106,9 +107,11 @@ def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     rigidity limit): the eigengap (11, gap 0.32 against 0.20 at 12) puts both segments in
     one group. The rigid skeleton cannot hold that group (two of its markers flagged), so
     the automatic count grows to 12 and the fit runs again: the true groups, nothing
-    flagged, the IK on the kept skeleton, the discarded fit's warning not shown. Given
-    ``n_segments=11`` the count stays, and the fit names the markers with the count to try."""
-    from helpers import partition
+    flagged, the IK on the kept skeleton, the discarded fit's warning not shown. Its tree
+    has one wrong joint, a near tie (5.04 against 5.12 mm^2 for the true joint): the fit
+    names it, with the true joint as its rival. Given ``n_segments=11`` the count stays,
+    and the fit names the markers with the count to try."""
+    from helpers import partition, segment_map
 
     trial, truth = synth.simulate(synth.random_tree(12, seed=3), duration=20.0, seed=3, noise=0.001, gaps=2)
     with warnings.catch_warnings(record=True) as caught:
@@ -123,6 +126,15 @@ def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
         result.trial.labels, truth.marker_segment[idx])
     assert result.skeleton.nonrigid_markers == () and "not rigid on their segment" not in result.summary()
     assert "grown from 11 (automatic)" in result.summary()
+    named = segment_map(result, trial, truth)
+    true_joints = {frozenset(map(int, e)) for e in truth.edges}
+    fitted = {frozenset((named[int(p)], named[int(c)])) for p, c in result.edges}
+    (tie,) = result.near_ties()
+    assert 0 <= tie.margin < tie.noise
+    wrong, rival = (frozenset(named[s] for s in pair) for pair in (tie.edge, tie.rival))
+    assert fitted - true_joints == {wrong} and true_joints - fitted == {rival}
+    ambiguous = [w for w in caught if issubclass(w.category, jaxskel.AmbiguousTreeWarning)]
+    assert len(ambiguous) == 1 and "near tie" in str(ambiguous[0].message) and "near tie" in result.summary()
     assert result.motion is not None and result.settings["ik"] is True
     assert result.motion.rotations.shape[1] == 12 and len(result.edges) == 11
     out = tmp_path / "split.h5"
@@ -130,13 +142,16 @@ def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     with h5py.File(out) as f:
         assert f["segments"].attrs["count_rule"] == "split" and f["segments"].attrs["split_from"] == 11
         assert [v.decode() for v in f["segments/split_markers"][()]] == list(seg.split_markers)
+        assert f["topology/near_ties"][()].tolist() == [[tie.joint, *tie.rival]]
+        assert np.allclose(f["topology/near_ties_margin"][()], [[tie.margin, tie.noise]])
 
     with pytest.warns(jaxskel.NonRigidMarkerWarning, match="n_segments=12") as caught:
         given = jaxskel.fit_skeleton(trial, 11, ik=False)
     assert given.n_segments == 11 and given.segmentation.count_rule == "given"
     flagged = set(given.skeleton.nonrigid_markers)
     assert len(flagged) >= 2 and all(lab.startswith(("S9M", "S10M")) for lab in flagged), flagged
-    assert all(lab in str(caught[0].message) for lab in flagged)
+    (named_markers,) = [w for w in caught if issubclass(w.category, jaxskel.NonRigidMarkerWarning)]
+    assert all(lab in str(named_markers.message) for lab in flagged)
     assert "not rigid on their segment" in given.summary() and "n_segments=12" in given.summary()
 
 
@@ -204,3 +219,31 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path):
     assert 0 <= int(back.normalized.default_frame) < trial.n_frames
     assert back.parameters.angles.shape[0] == trial.n_frames
     assert np.isfinite(back.parameters.axes).any()
+
+
+_CACHE_PROBE = """
+import jax, jax.numpy as jnp
+from jaxskel._cli import CACHE_MAX_BYTES, _enable_compile_cache
+hits = []
+jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
+_enable_compile_cache()
+assert jax.config.jax_compilation_cache_max_size == CACHE_MAX_BYTES
+print(float(jax.jit(lambda x: jnp.sin(x) * 3.0 + x**2)(1.5)), len(hits))
+"""
+
+
+def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
+    """The CLI's persistent cache: bounded (so JAX locks every entry read and write; an
+    unlocked entry read mid-write by a parallel process crashed XLA), filled by one process
+    and hit by the next. ``JAXSKEL_CACHE_DIR=""`` turns it off."""
+    env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", _CACHE_PROBE], env=env, capture_output=True, text=True,
+                           timeout=120) for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), [r.stderr[-2000:] for r in runs]
+    (value0, hits0), (value1, hits1) = (r.stdout.split() for r in runs)
+    assert value0 == value1 and int(hits0) == 0 and int(hits1) >= 1
+    entries = list((tmp_path / "cache").glob("*-cache"))
+    assert entries and (tmp_path / "cache" / ".lockfile").exists()
+    off = subprocess.run([sys.executable, "-c", _CACHE_PROBE.replace("assert jax.config", "assert not jax.config")],
+                         env={**env, "JAXSKEL_CACHE_DIR": ""}, capture_output=True, text=True, timeout=120)
+    assert off.returncode == 0, off.stderr[-2000:]

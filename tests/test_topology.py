@@ -7,6 +7,7 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
+from jaxskel._near_ties import rival_edges
 from jaxskel._tree import mst_edges, root_tree, tree_path
 
 
@@ -45,6 +46,24 @@ def test_mst_and_rooting_on_a_known_graph():
     assert len(parents) == 3 and roots[0] not in parents
     directed, roots = root_tree(4, edges, root=0)
     assert roots == [0] and [tuple(e) for e in directed] == [(0, 1), (1, 2), (2, 3)]
+
+
+def test_rival_edges_are_the_cheapest_pairs_across_each_cut():
+    inf = np.inf
+    cost = np.array(
+        [
+            [inf, 1.0, 5.0, inf],
+            [1.0, inf, 2.0, 9.0],
+            [5.0, 2.0, inf, 0.5],
+            [inf, 9.0, 0.5, inf],
+        ]
+    )
+    edges = mst_edges(cost)  # 0-1, 1-2, 2-3
+    rivals = dict(zip(map(tuple, edges.tolist()), rival_edges(cost, edges)))
+    # without 0-1 only 0-2 crosses; without 1-2 the cheapest of 0-2 (5) and 1-3 (9); 2-3: 1-3
+    assert {k: tuple(sorted(v)) for k, v in rivals.items()} == {(0, 1): (0, 2), (1, 2): (0, 2), (2, 3): (1, 3)}
+    cost[0, 2] = cost[2, 0] = inf  # no other pair reaches segment 0
+    assert rival_edges(cost, edges)[0] is None
 
 
 def test_disconnected_graph_gives_forest():
@@ -88,6 +107,20 @@ def test_full_body_exact_topology(body_fit):
     for p, c in result.edges:
         assert p in seen
         seen.add(int(c))
+
+
+def test_full_body_tree_has_no_near_ties_and_every_rival_costs_more(body_fit):
+    """Calibration motion settles every joint: no rival within the costs' sampling noise
+    (the closest is 5 standard errors away on this family of bodies). The cut property of
+    the minimum spanning tree: every rival costs at least its joint, so a zero noise
+    allowance reports nothing and an unbounded one reports every joint."""
+    trial, truth, result = body_fit
+    assert result.near_ties() == []
+    everything = jaxskel.near_ties(result.trial, result.segmentation, result.topology, z=1e9)
+    assert [t.joint for t in everything] == list(range(len(result.edges)))
+    assert all(t.margin >= 0 and t.rival_cost >= t.cost for t in everything)
+    assert jaxskel.near_ties(result.trial, result.segmentation, result.topology, z=0.0) == []
+    assert "near tie" not in result.summary()
 
 
 def joint_rmse(result, trial, truth, j, positions):
