@@ -17,6 +17,7 @@ import argparse
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 __all__ = ["main"]
@@ -318,6 +319,17 @@ def main(argv: list[str] | None = None) -> int:
     _enable_compile_cache()
     from ._errors import JaxskelError
 
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        return _run(args, JaxskelError)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """Warnings as a command line tool says them: one labelled message, no source line."""
+    print(f"jaxskel: warning ({category.__name__}): {message}", file=sys.stderr if file is None else file)
+
+
+def _run(args: argparse.Namespace, error: type[Exception]) -> int:
     try:
         if args.command == "fit":
             return _fit(args.inputs, args.output, args)
@@ -327,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
             return _info(args.file)
         if args.command == "fit-batch":
             return _fit_batch(args)
-    except JaxskelError as exc:
+    except error as exc:
         print(f"jaxskel: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

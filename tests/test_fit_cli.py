@@ -169,6 +169,20 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     assert jaxskel.load(src).n_markers == trial.n_markers  # the input survived
 
 
+def test_cli_warnings_are_one_labelled_message(tmp_path, capsys):
+    """A fit that warns (the random tree of the test above, given one segment too few: the
+    rigid skeleton names the markers it cannot hold) prints the warning as the tool's own
+    line, with no Python file path or source line."""
+    trial, _ = synth.simulate(synth.random_tree(12, seed=3), duration=20.0, seed=3, noise=0.001, gaps=2)
+    src = tmp_path / "tree.c3d"
+    trial.save(src)
+    assert main(["fit", str(src), "-o", str(tmp_path / "out.h5"), "--segments", "11", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    named = [line for line in err.splitlines() if line.startswith("jaxskel: warning (NonRigidMarkerWarning): markers")]
+    assert len(named) == 1 and "n_segments=12" in named[0], err
+    assert "_cli.py" not in err and "fit_skeleton(" not in err
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     bad = tmp_path / "broken.c3d"
     bad.write_bytes(b"not a c3d file at all")
