@@ -37,10 +37,10 @@ def _enable_compile_cache() -> None:
     if not cache:
         return
     try:
-        # JAX locks cache entries only with filelock and a size bound (its LRU bookkeeping).
-        # Unbounded, entries are written in place unlocked, and a second process reading one
-        # mid-write (parallel fits sharing the cache, pytest -n 2) crashed in XLA's
-        # deserialisation: a segfault, not an exception. No filelock: no cache.
+        # JAX locks cache entries only with filelock and a size bound (its LRU bookkeeping);
+        # unbounded, entries are written in place unlocked while parallel fits may read them
+        # (a torn read is caught by the entries' zlib checksum and recompiled, but a lock is
+        # what JAX asks for a shared cache). No filelock: no cache.
         import filelock  # noqa: F401
     except ImportError:
         return

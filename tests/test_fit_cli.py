@@ -247,9 +247,9 @@ print(float(jax.jit(lambda x: jnp.sin(x) * 3.0 + x**2)(1.5)), len(hits))
 
 
 def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
-    """The CLI's persistent cache: bounded (so JAX locks every entry read and write; an
-    unlocked entry read mid-write by a parallel process crashed XLA), filled by one process
-    and hit by the next. ``JAXSKEL_CACHE_DIR=""`` turns it off."""
+    """The CLI's persistent cache: bounded (so JAX locks every entry read and write, for
+    parallel runs sharing it), filled by one process and hit by the next.
+    ``JAXSKEL_CACHE_DIR=""`` turns it off."""
     env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
     runs = [subprocess.run([sys.executable, "-c", _CACHE_PROBE], env=env, capture_output=True, text=True,
                            timeout=120) for _ in range(2)]
