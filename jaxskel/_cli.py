@@ -317,11 +317,9 @@ def main(argv: list[str] | None = None) -> int:
         _parser().print_help()
         return 1
     _enable_compile_cache()
-    from ._errors import JaxskelError
-
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
-        return _run(args, JaxskelError)
+        return _run(args)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
@@ -329,7 +327,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"jaxskel: warning ({category.__name__}): {message}", file=sys.stderr if file is None else file)
 
 
-def _run(args: argparse.Namespace, error: type[Exception]) -> int:
+def _run(args: argparse.Namespace) -> int:
+    from ._errors import JaxskelError
+
     try:
         if args.command == "fit":
             return _fit(args.inputs, args.output, args)
@@ -339,7 +339,7 @@ def _run(args: argparse.Namespace, error: type[Exception]) -> int:
             return _info(args.file)
         if args.command == "fit-batch":
             return _fit_batch(args)
-    except error as exc:
+    except JaxskelError as exc:
         print(f"jaxskel: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -700,7 +700,7 @@ def finish_fit(
     from ._near_ties import near_ties
 
     _warn_near_ties(near_ties(work, segmentation, topology), names)
-    skeleton = motion = None
+    skeleton = None
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):
             from ._rigid import SOLVED_JOINT_WEIGHT, fit_rigid

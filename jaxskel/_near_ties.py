@@ -33,6 +33,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ._tree import _adjacency, _bfs
+
 __all__ = ["NearTie", "near_ties", "rival_edges"]
 
 
@@ -62,15 +64,9 @@ def rival_edges(cost: np.ndarray, edges: np.ndarray) -> list[tuple[int, int] | N
     edges = np.asarray(edges, dtype=int).reshape(-1, 2)
     out: list[tuple[int, int] | None] = []
     for e, (a, b) in enumerate(edges):
-        # the side of the cut holding a: flood fill over the other tree edges
+        # the side of the cut holding a: what the other tree edges reach from a
         side = np.zeros(n, dtype=bool)
-        side[a] = True
-        others = np.delete(edges, e, axis=0)
-        for _ in range(n):
-            grow = side[others[:, 0]] ^ side[others[:, 1]]
-            if not grow.any():
-                break
-            side[others[grow].ravel()] = True
+        side[list(_bfs(_adjacency(n, np.delete(edges, e, axis=0)), int(a))[0])] = True
         crossing = np.where(side[:, None] & ~side[None, :], cost, np.inf)
         crossing[a, b] = crossing[b, a] = np.inf
         i, j = np.unravel_index(np.argmin(crossing), crossing.shape)
@@ -92,8 +88,7 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -
     pc = topology.pair_costs
     if pc is None or not len(topology.edges):
         return []
-    _, mask = trial.to_arrays()
-    mask = np.asarray(mask)[np.asarray(pc.frames)]
+    mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
     seg = np.asarray(segmentation.marker_segment)
     out = []
     for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(pc.cost, topology.edges))):
