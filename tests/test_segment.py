@@ -109,11 +109,40 @@ def test_mend_leaves_markers_on_joints_and_rigid_markers_alone():
     a[joint, 4:8] = a[4:8, joint] = [0.003, 0.0035, 0.0045, 0.005]
     a[joint, :3] = a[:3, joint] = [0.004, 0.0042, 0.0038]
     np.testing.assert_array_equal(_mend(labels, a, 0.003), labels)
-    # a marker non-rigid with its group only at the noise scale is not moved either
+    # a marker a little less rigid with its group than with another, all at the noise
+    # scale (3 mm against 2.2 mm, under 1.5 times), is not moved either
     _, b = _blocks([4, 4, 4])
     b[0, 1:4] = b[1:4, 0] = 0.003
-    b[0, 4:8] = b[4:8, 0] = 0.001
+    b[0, 4:8] = b[4:8, 0] = 0.0022
     np.testing.assert_array_equal(_mend(labels, b, 0.004), labels)
+
+
+def test_mend_moves_a_marker_far_more_rigid_with_another_group_under_sigma():
+    """A marker near a joint put on the wrong side: A = 2.5 mm to its two group mates,
+    under sigma (4 mm), but 1.4 mm (the noise floor) to every marker of its own
+    segment. It moves; with one partner of the other group as loose as its own group
+    (the largest A over h decides, not a quartile) it stays."""
+    labels, a = _blocks([2, 4, 4], within=0.0014)
+    wrong = labels.copy()
+    wrong[2] = 0  # marker 2 of group 1 in group 0
+    a[2, :2] = a[:2, 2] = [0.0024, 0.0026]
+    a[2, 3:6] = a[3:6, 2] = 0.0015
+    np.testing.assert_array_equal(_mend(wrong, a, 0.004), labels)
+    np.testing.assert_array_equal(_mend(labels, a, 0.004), labels)
+    loose = a.copy()
+    loose[2, 5] = loose[5, 2] = 0.0025
+    np.testing.assert_array_equal(_mend(wrong, loose, 0.004), wrong)
+
+
+def test_sixteen_segment_tree_marker_near_a_joint_lands_on_its_segment():
+    """random_tree(16, seed=1): spectral clustering put one marker of segment 2 with
+    segment 1 (A 2.4-2.6 mm there, 1.4 mm with its own segment); the mend's ratio
+    reading moves it back, and the segmentation is the truth."""
+    body = synth.random_tree(16, seed=1)
+    trial, truth = synth.simulate(body, duration=20.0, seed=1, noise=0.001, gaps=2)
+    seg = jaxskel.segment_markers(trial)
+    true_seg = truth.marker_segment[[trial.labels.index(lab) for lab in seg.labels]]
+    assert partition(seg.labels, seg.marker_segment) == partition(seg.labels, true_seg)
 
 
 def test_count_grows_from_the_eigengap_until_every_group_is_rigid():
