@@ -25,8 +25,8 @@ Following the paper:
 * Beyond the paper, each sampling's clustering is mended before it is scored: a
   marker plainly non-rigid with its group (or far less rigid with it than with
   another) and plainly rigid with another moves there when that lowers the score
-  (:func:`_mend`). Spectral clustering follows chains of affinity, and labels seen only while the body held still are falsely rigid with
-  everything around them.
+  (:func:`_mend`). Spectral clustering follows chains of affinity, and labels seen
+  only while the body held still are falsely rigid with everything around them.
 * The number of segments is given, or chosen at the largest gap of the
   normalised-affinity spectrum (the eigengap); the spectrum is kept in the
   result so a user can see why.

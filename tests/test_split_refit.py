@@ -136,12 +136,15 @@ def test_a_given_count_never_grows_and_growth_is_bounded(trial):
     out = fit_growing_count(given, flagging(4), flagging(0), lambda p, r: r, seed=0, segment_kwargs=None)
     assert calls == [11] and out.segmentation.count_rule == "given"
 
-    # every split removes a flag but leaves two or more on one segment: MAX_SPLITS refits
+    # every split removes a flag but leaves two or more on one segment: MAX_SPLITS refits.
+    # The paper's clustering (no mend): mended, the 13 groups of this 12-segment body
+    # leave a marker alone (the mend returns a split segment's marker to its mates), and
+    # the singleton rule, tested below, would discard that split.
     calls.clear()
     counts = iter(range(2 + MAX_SPLITS + 3, 0, -1))
     out = fit_growing_count(
         _prep(trial), flagging(next(counts)), lambda p: flagging(next(counts))(p), lambda p, r: r,
-        seed=0, segment_kwargs=None,
+        seed=0, segment_kwargs={"mend": False},
     )
     assert calls == [11 + k for k in range(MAX_SPLITS + 1)]
     assert out.segmentation.n_segments == 11 + MAX_SPLITS and out.segmentation.split_from == 11
