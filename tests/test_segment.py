@@ -120,17 +120,19 @@ def test_mend_leaves_markers_on_joints_and_rigid_markers_alone():
 def test_mend_moves_a_marker_far_more_rigid_with_another_group_under_sigma():
     """A marker near a joint put on the wrong side: A = 2.5 mm to its two group mates,
     under sigma (4 mm), but 1.4 mm (the noise floor) to every marker of its own
-    segment. It moves; with one partner of the other group as loose as its own group
-    (the largest A over h decides, not a quartile) it stays."""
-    labels, a = _blocks([2, 4, 4], within=0.0014)
+    segment. It moves; with one loose partner in the other group it stays (the largest
+    A over h decides, not a quartile)."""
+    labels, a = _blocks([2, 8, 4], within=0.0014)
     wrong = labels.copy()
     wrong[2] = 0  # marker 2 of group 1 in group 0
     a[2, :2] = a[:2, 2] = [0.0024, 0.0026]
-    a[2, 3:6] = a[3:6, 2] = 0.0015
+    a[2, 3:10] = a[3:10, 2] = 0.0015
     np.testing.assert_array_equal(_mend(wrong, a, 0.004), labels)
     np.testing.assert_array_equal(_mend(labels, a, 0.004), labels)
+    # one loose partner (3 mm) in group 1: its upper quartile is still 1.5 mm, its
+    # largest value is 2 times what marker 2 shows with group 0
     loose = a.copy()
-    loose[2, 5] = loose[5, 2] = 0.0025
+    loose[2, 9] = loose[9, 2] = 0.003
     np.testing.assert_array_equal(_mend(wrong, loose, 0.004), wrong)
 
 
