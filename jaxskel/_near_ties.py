@@ -35,8 +35,9 @@ Tried and not used: the same test on the variance parts alone (the prior taken o
 which asks whether the data, not the prior, chose the joint. It names the wrong joints
 of all three wrong synthetic trees (12 segments seed 3, 16 segments seeds 0 and 1,
 where the rival fits the distances as well or better and only the prior decided), but
-also 1-4 right joints on each of those trees, two right joints on HDM05 dg and the right
-hip on CMU 02_05, and it misses the squat's wrong joint (+26 % in variance).
+also a right joint on each 16-segment one, four right joints on the exact 16-segment
+tree of seed 3, two right joints on HDM05 dg and the right hip on CMU 02_05, and it
+misses the squat's wrong joint (+26 % in variance).
 """
 
 from __future__ import annotations
