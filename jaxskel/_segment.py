@@ -336,11 +336,10 @@ def _mend(labels: np.ndarray, a: np.ndarray, sigma: float, ratio: float = MEND_R
         join = (p[None, :] + s) / (n[None, :] + 1) - p[None, :] / n[None, :]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no evidence
-            q = np.stack([np.nanpercentile(a_obs[:, labels == g], [25, 75], axis=1) for g in range(k)], axis=-1)
-            top = np.stack([np.nanmax(a_obs[:, labels == g], axis=1) for g in range(k)], axis=-1)
+            # lower quartile, upper quartile and largest A_ij of each marker to each group
+            q = np.stack([np.nanpercentile(a_obs[:, labels == g], [25, 75, 100], axis=1) for g in range(k)], axis=-1)
         own_low = q[0, rows, labels]  # (M,) NaN: nothing observed with its own group
-        other_high = np.where(np.isnan(q[1]), np.inf, q[1])  # (M, k)
-        other_max = np.where(np.isnan(top), np.inf, top)
+        other_high, other_max = np.where(np.isnan(q[1:]), np.inf, q[1:])  # (M, k) each
         loose = (own_low > sigma)[:, None] | (ratio * other_max < own_low[:, None])  # (M, k)
         allowed = loose & (other_high < own_low[:, None])
         delta = np.where(allowed, leave[:, None] + join, np.inf)
