@@ -224,11 +224,9 @@ class SkeletonResult:
             f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
         }[seg.count_rule]
         lines.append(f"segment count: {rule}; largest eigengaps after k = {gaps}")
-        for g, a, b, std in seg.nonrigid_groups():
-            lines.append(
-                f"  segment {self.segment_names[g]} is not rigid: {a} and {b} move relative to each other "
-                f"(distance std {1e3 * std:.1f} mm); consider n_segments (--segments)"
-            )
+        groups = _nonrigid_group_texts(seg, self.segment_names)
+        if groups:
+            lines += [f"  {text}" for text in groups] + [f"  {_nonrigid_group_hint(seg)}"]
         if self.cleaning is not None and self.cleaning.duplicates:
             pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
             lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
@@ -288,6 +286,36 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
             "are not determined by the motion and come from the distance prior. Fit the recording "
             "together with a range-of-motion trial (fit_skeleton([rom, trial]))",
             DegenerateMotionWarning,
+            stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
+        )
+
+
+def _nonrigid_group_texts(seg: Segmentation, names: Sequence[str]) -> list[str]:
+    """One line per segment whose markers move relative to each other (:meth:`Segmentation.nonrigid_groups`)."""
+    return [
+        f"segment {names[g]} is not rigid: {a} and {b} move relative to each other "
+        f"(distance std {1e3 * std:.1f} mm, rigidity limit {1e3 * seg.rigid_limit:.1f} mm)"
+        for g, a, b, std in seg.nonrigid_groups()
+    ]
+
+
+def _nonrigid_group_hint(seg: Segmentation) -> str:
+    """What to try when some segment's group is not rigid."""
+    if seg.rigid_count:
+        return (
+            f"compare n_segments={seg.rigid_count} (--segments {seg.rigid_count}): the first larger count whose "
+            "groups are all rigid, not chosen because it leaves a marker alone in a group"
+        )
+    return "two segments clustered as one, or a loose marker: consider a larger n_segments (--segments)"
+
+
+def _warn_nonrigid_groups(seg: Segmentation, names: Sequence[str]) -> None:
+    """A :class:`NonRigidMarkerWarning` naming the segments whose groups are not rigid."""
+    groups = _nonrigid_group_texts(seg, names)
+    if groups:
+        warnings.warn(
+            f"{len(groups)} segment(s) not rigid:\n" + "\n".join(groups) + "\n" + _nonrigid_group_hint(seg),
+            NonRigidMarkerWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
 
@@ -696,6 +724,7 @@ def finish_fit(
 
     from ._topology import untested_joints
 
+    _warn_nonrigid_groups(segmentation, names)
     _warn_untested(untested_joints(segmentation, topology), names, segmentation.segment_sizes)
     from ._near_ties import near_ties
 

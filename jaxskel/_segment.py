@@ -156,6 +156,10 @@ class Segmentation:
     split_markers
         With ``count_rule == "split"``: the markers the rigid skeleton flagged, two or
         more on one segment, that made the count grow.
+    rigid_count
+        With ``count_rule == "eigengap"``: the first larger count whose groups were all
+        rigid, passed over because it leaves more markers alone in a group (a count to
+        compare when :meth:`nonrigid_groups` is not empty); 0 when there is none.
     """
 
     labels: tuple[str, ...]
@@ -174,6 +178,7 @@ class Segmentation:
     rigid_limit: float = float("inf")
     split_from: int = 0
     split_markers: tuple[str, ...] = ()
+    rigid_count: int = 0
 
     @property
     def groups(self) -> list[tuple[str, ...]]:
@@ -508,6 +513,7 @@ def segment_markers(
         return candidates[best], scores, best
 
     limit = float(rigid_ratio) * sig if rigid_ratio is not None else np.inf
+    rigid_count = 0
     if n_segments is not None:
         rule, (labels, scores, best) = "given", cluster(n_segments)
     else:
@@ -519,9 +525,14 @@ def segment_markers(
                     # A new single-marker group has no partner for a joint among its
                     # neighbours when they carry few markers (a joint needs 4 in all):
                     # it is then jointed anywhere (HDM05 dg: a heel marker alone, jointed
-                    # to the forearm). Keep the eigengap's count then.
+                    # to the forearm). Keep the eigengap's count then, and report this one.
+                    # Accepting a lone marker whose most rigid partner's group is large
+                    # enough for a joint was tried: better on numediart 85_12 (8 -> 13),
+                    # worse on 03_rolling (14 -> 24), squat and biobuddy's trunk trial.
                     if _singletons(grown[0]) <= _singletons(labels):
                         rule, (labels, scores, best) = "rigid", grown
+                    else:
+                        rigid_count = n
                     break
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
@@ -541,6 +552,7 @@ def segment_markers(
         count_rule=rule,
         max_segments=int(max_segments),
         rigid_limit=limit,
+        rigid_count=rigid_count,
     )
 
 

@@ -155,6 +155,33 @@ def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     assert "not rigid on their segment" in given.summary() and "n_segments=12" in given.summary()
 
 
+def test_a_group_that_is_not_rigid_is_named_with_the_count_to_compare(tmp_path):
+    """Where the automatic count keeps a non-rigid group (the first rigid count would leave
+    a marker alone, test_segment.py), the fit warns with the group, its two markers and
+    that count; the summary says the same and the file keeps the count."""
+    from test_segment import _linkage_with_a_bending_marker
+
+    trial = _linkage_with_a_bending_marker()
+    with pytest.warns(jaxskel.NonRigidMarkerWarning, match="compare n_segments=4") as caught:
+        result = jaxskel.fit_skeleton(trial, segment_kwargs={"sigma": 0.006}, ik=False)
+    (message,) = [str(w.message) for w in caught if "segment(s) not rigid" in str(w.message)]
+    assert message.startswith("1 segment(s) not rigid") and "R3M1 and R3M3" in message
+    assert "compare n_segments=4 (--segments 4)" in message
+    assert caught[0].filename == __file__  # pointed at the caller's line
+    assert result.segmentation.rigid_count == 4 and result.n_segments == 3
+    assert "R3M1 and R3M3 move relative to each other" in result.summary()
+    assert "compare n_segments=4 (--segments 4)" in result.summary()
+    result.save(tmp_path / "bent.h5")
+    with h5py.File(tmp_path / "bent.h5") as f:
+        assert f["segments"].attrs["rigid_count"] == 4
+    # the count it names makes every group rigid: no such warning then
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        four = jaxskel.fit_skeleton(trial, 4, segment_kwargs={"sigma": 0.006}, ik=False)
+    assert four.segmentation.nonrigid_groups() == []
+    assert not [w for w in caught if "not rigid:" in str(w.message)]
+
+
 def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, capsys):
     trial, _ = linkage_trial
     src = tmp_path / "link.c3d"

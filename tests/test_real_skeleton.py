@@ -73,6 +73,7 @@ def test_hdm05_tree_is_a_human_skeleton(hdm_dg):
     ((_, first, second, _),) = hdm_dg.segmentation.nonrigid_groups()
     assert {first.split(":")[-1], second.split(":")[-1]} == {"LHEE", "LTOE"}
     assert "is not rigid" in hdm_dg.summary()
+    assert hdm_dg.segmentation.rigid_count == 15 and "compare n_segments=15" in hdm_dg.summary()
     for limb in ("thigh", "shank", "foot", "upper arm", "forearm"):
         assert {f"L {limb}", f"R {limb}"} <= set(parts), (limb, parts)
     assert implausible_edges(hdm_dg.trial.labels, hdm_dg.segmentation.marker_segment, hdm_dg.edges) == []
@@ -94,6 +95,20 @@ def test_hdm05_limb_bones_against_asf(hdm_dg):
     assert np.max(np.abs(fit - ref)) < 0.025, bones
     assert abs(fit.sum() - ref.sum()) < 0.05 * ref.sum()
     assert sum(np.abs(fit - ref) < 0.02) >= 4
+
+
+def test_flat_spectrum_names_its_joined_segments_and_the_rigid_count():
+    """numediart 85_12 (CMU set, 37 s): the spectrum has no clear gap (8: 0.100, 9: 0.082,
+    13: 0.073) and the eigengap's 8 segments join thighs, shanks and feet (bones up to
+    1.3 m). The first rigid count, 13, leaves the right thigh marker alone, so 8 is kept
+    (README, Known limits); the five non-rigid groups are named and 13 is reported as the
+    count to compare."""
+    trial, _ = jaxskel.clean(jaxskel.load(DATA / "numediart" / "85_12.c3d"))
+    seg = jaxskel.segment_markers(trial)
+    assert (seg.count_rule, seg.n_segments, seg.rigid_count) == ("eigengap", 8, 13)
+    assert len(seg.nonrigid_groups()) == 5
+    thirteen = jaxskel.segment_markers(trial, 13)
+    assert thirteen.nonrigid_groups() == [] and thirteen.groups.count(("RTHI",)) == 1
 
 
 def test_cmu_legs_with_automatic_segment_count():
