@@ -159,15 +159,16 @@ def test_a_group_that_is_not_rigid_is_named_with_the_count_to_compare(tmp_path):
     """Where the automatic count keeps a non-rigid group (the first rigid count would leave
     a marker alone, test_segment.py), the fit warns with the group, its two markers and
     that count; the summary says the same and the file keeps the count."""
-    from test_segment import _linkage_with_a_bending_marker
+    from helpers import linkage_with_a_bending_marker
 
-    trial = _linkage_with_a_bending_marker()
+    trial = linkage_with_a_bending_marker()
     with pytest.warns(jaxskel.NonRigidMarkerWarning, match="compare n_segments=4") as caught:
         result = jaxskel.fit_skeleton(trial, segment_kwargs={"sigma": 0.006}, ik=False)
-    (message,) = [str(w.message) for w in caught if "segment(s) not rigid" in str(w.message)]
+    (groups,) = [w for w in caught if "segment(s) not rigid" in str(w.message)]
+    message = str(groups.message)
     assert message.startswith("1 segment(s) not rigid") and "R3M1 and R3M3" in message
     assert "compare n_segments=4 (--segments 4)" in message
-    assert caught[0].filename == __file__  # pointed at the caller's line
+    assert groups.filename == __file__  # pointed at the caller's line
     assert result.segmentation.rigid_count == 4 and result.n_segments == 3
     assert "R3M1 and R3M3 move relative to each other" in result.summary()
     assert "compare n_segments=4 (--segments 4)" in result.summary()

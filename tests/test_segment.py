@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import partition, random_rotation, true_partition
+from helpers import linkage_with_a_bending_marker, partition, random_rotation, true_partition
 
 import jaxskel
 from jaxskel import synth
@@ -171,28 +171,13 @@ def test_count_grows_from_the_eigengap_until_every_group_is_rigid():
     assert given.n_segments == 8 and given.count_rule == "given"
 
 
-def _linkage_with_a_bending_marker():
-    """The linkage with its last rod's third marker swinging 4 cm from the middle one (a
-    toe on a foot): rigid with that marker, not with the rod's first (distance std 22 mm
-    against the 18 mm limit at ``sigma`` = 6 mm). Every rigid split of that rod leaves a
-    marker alone, as HDM05 dg's left heel at 15 segments."""
-    trial, truth = synth.simulate(synth.linkage(), duration=30.0, seed=0, noise=0.001)
-    x = np.array(trial.positions)
-    pivot, swing = trial.labels.index("R3M2"), trial.labels.index("R3M3")
-    theta = 0.6 * np.sin(2 * np.pi * 0.23 * trial.times) + 0.4 * np.sin(2 * np.pi * 0.61 * trial.times + 1.0)
-    arm = np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=-1)
-    noise = np.random.default_rng(5).normal(0.0, 0.001, arm.shape)
-    x[:, swing] = x[:, pivot] + 0.04 * arm + noise
-    return trial.replace(positions=x)
-
-
 def test_a_rigid_count_that_leaves_a_marker_alone_is_reported_not_taken():
     """The first count whose groups are all rigid (4) leaves a marker alone: the eigengap's
     3 is kept, its non-rigid group named, and 4 is reported as the count to compare."""
-    trial = _linkage_with_a_bending_marker()
+    trial = linkage_with_a_bending_marker()
     seg = jaxskel.segment_markers(trial, sigma=0.006)
     assert (seg.count_rule, seg.eigengap_segments, seg.n_segments, seg.rigid_count) == ("eigengap", 3, 3, 4)
-    ((group, first, second, std),) = seg.nonrigid_groups()
+    ((_, first, second, std),) = seg.nonrigid_groups()
     assert {first, second} == {"R3M1", "R3M3"} and std > seg.rigid_limit == pytest.approx(0.018)
     four = jaxskel.segment_markers(trial, 4, sigma=0.006)
     assert four.nonrigid_groups() == [] and 1 in four.segment_sizes
