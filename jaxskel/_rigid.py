@@ -36,7 +36,8 @@ skeleton, in two steps.
    :mod:`jaxskel._ik_batch`, warm-started from the previous sweep) with the exact
    linear least-squares solution for the offsets (normal equations assembled from
    per-frame rotation products). Each sweep cannot increase the cost (up to the weak IK
-   pose prior); the loop stops when a sweep lowers it by less than ``rtol`` relative.
+   pose prior); the loop stops when an offset update moves no offset by more than
+   ``xtol``, the updates Anderson-accelerated (``_refine``).
    Frames whose marker RMS after the first sweep is an outlier (above median + 5 MAD:
    swaps, jumps, a marker knocked loose) are left out. At most ``max_frames`` frames,
    spread evenly over the trial, are used.
@@ -67,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ._anderson import anderson_step
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._geometry import horn_align, quat_to_matrix
 from ._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
@@ -94,8 +96,8 @@ __all__ = ["Skeleton", "fit_rigid", "validate_tree"]
 #: finer than the marker noise.
 _GPA_TOL, _GPA_MAX_PASSES = 1e-7, 8
 
-#: Over-relaxation of the refinement's offset updates: growth per sweep and ceiling.
-_OMEGA_GROWTH, _OMEGA_MAX = 1.25, 5.0
+#: Pairs (beyond the newest) the refinement's Anderson acceleration combines (``_refine``).
+_ANDERSON_MEMORY = 5
 
 #: Weight of an input joint centre relative to a marker in the refinement (``fit_rigid``'s
 #: default: the centres are trusted like a marker).
@@ -154,8 +156,9 @@ class Skeleton:
     diagnostics
         Read-only mapping of plain values: ``sweeps``, ``result`` (0 converged, 7 hit
         ``max_sweeps``), ``cost_history`` (mean squared marker residual per sweep, m^2),
-        ``residual_rms`` (m), ``frames_used``, ``frames_rejected``, ``rest_frame``,
-        ``ik_steps_mean``, ``ik_steps_max``, ``ik_failures``, ``procrustes_segments``
+        ``offset_steps`` (per sweep, the largest offset move of its update, m; the
+        refinement stops below ``xtol``), ``residual_rms`` (m), ``frames_used``,
+        ``frames_rejected``, ``rest_frame``, ``ik_steps_mean``, ``ik_steps_max``, ``ik_failures``, ``procrustes_segments``
         (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
         ``hinge_shift`` (per joint: how far it was moved along its axis into its limb
         plane, m, signed along ``hinge_axis``; 0 for joints not moved) and ``hinge_axis``
@@ -508,12 +511,12 @@ def _refine(
     unknown_segment: np.ndarray,
     start: dict[str, np.ndarray] | None,
     prior_weight: np.ndarray,
-    rtol: float,
+    xtol: float,
     refine: bool,
     *,
     max_sweeps: int,
     max_steps: int,
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], int, list[float], bool]:
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[float], list[float], bool]:
     """Alternate IK sweeps and exact offset updates (module docstring).
 
     A sweep is the batched IK of :mod:`jaxskel._ik_batch` over all fitting frames, the
@@ -521,15 +524,23 @@ def _refine(
     end of the joint's child, where the parent's joint offset puts it; it starts from
     ``start`` (the previous sweep's poses, the prior their relative rotations) or, for
     ``None``, from the batched Horn alignment. With ``refine`` each sweep is followed by
-    the offset update
-    until the cost stops dropping; a last sweep then fits the poses to the final
-    offsets. Alternating the two converges linearly and slowly along directions that
-    couple poses and offsets (with lightly weighted joint centres, rate ~0.86 per sweep:
-    65 sweeps), so each offset update is over-relaxed, ``theta + omega (theta* - theta)``,
-    with ``omega`` growing by 1.25 per sweep up to 5 and back to 1 whenever the cost rose
-    (measured: 65 -> 27 sweeps, identical skeleton). Returns the offsets, that sweep's
-    solution, the number of offset updates, the cost history (mean weighted squared
-    residual after each update) and whether the tolerance was met.
+    the offset update ``theta* = G(theta)`` until it moves no offset by more than
+    ``xtol`` (metres) without raising the cost: a fixed point of the alternation, i.e. a
+    stationary point of the joint problem. A last sweep then fits the poses to the final
+    offsets.
+
+    Alternating the two converges linearly and slowly along directions that couple
+    poses and offsets (a bone's length against the poses of its two segments). On the
+    bundled sample the plain iteration still moved bones by 4 mm after 100 sweeps and
+    needed ~400 to settle. The updates are therefore Anderson-accelerated
+    (:mod:`jaxskel._anderson`, the last ``_ANDERSON_MEMORY`` + 1 pairs), restarted
+    whenever the cost rose. Measured against the over-relaxation used before
+    (``theta + omega (theta* - theta)``, ``omega`` growing to 5, stopped at a relative
+    cost decrease of 1e-5): bundled sample 100 sweeps and bones up to 4.2 mm from the
+    optimum -> 91 sweeps and 0.05 mm; synthetic full body with 3 mm soft tissue 21-23 ->
+    22-23 sweeps, mean bone error 0.74 -> 0.69 % (seeds 0-2). Returns the offsets, the
+    last sweep's solution, the cost history (mean weighted squared residual after each
+    update), the largest offset move of each update (m) and whether ``xtol`` was met.
     """
     n_m = marker_theta.shape[0]
     parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
@@ -556,8 +567,10 @@ def _refine(
     m_th, j_th = marker_theta, joint_theta
     sol = sweep(m_th, j_th, start)
     history: list[float] = []
+    steps: list[float] = []
     met = False
-    omega = 1.0
+    iterates: list[np.ndarray] = []
+    images: list[np.ndarray] = []
     if refine:  # the offset system's fixed inputs, on the device once
         args = tuple(jnp.asarray(a) for a in (obs, present * obs_base_weight, coef, unknown_segment))
     while refine and len(history) < max_sweeps and not met:
@@ -566,20 +579,22 @@ def _refine(
             jnp.asarray(sol["rotations"]), jnp.asarray(sol["root_position"]), *args, jnp.asarray(theta_old)
         )
         cost = float(cost)
-        decrease = history[-1] - cost if history else np.inf
-        met = bool(history) and 0.0 <= decrease <= rtol * history[-1]
-        if decrease < 0:  # the last extrapolation overshot: plain updates again
-            omega = 1.0
-        history.append(cost)
         theta = np.asarray(theta).reshape(-1)
+        step = float(np.max(np.abs(theta - theta_old)))
+        rose = bool(history) and cost > history[-1]
+        met = bool(history) and not rose and step <= xtol
+        if rose:  # the last extrapolation overshot: start the acceleration afresh
+            iterates, images = [], []
+        history.append(cost)
+        steps.append(step)
+        iterates = [*iterates, theta_old][-(_ANDERSON_MEMORY + 1):]
+        images = [*images, theta][-(_ANDERSON_MEMORY + 1):]
         if not met:
-            theta = theta_old + omega * (theta - theta_old)
-            if len(history) > 1:
-                omega = min(_OMEGA_MAX, _OMEGA_GROWTH * omega)
+            theta = anderson_step(iterates, images)
         theta = theta.reshape(-1, 3)
         m_th, j_th = theta[:n_m], theta[n_m:]
         sol = sweep(m_th, j_th, sol)
-    return m_th, j_th, sol, len(history), history, met
+    return m_th, j_th, sol, history, steps, met
 
 
 # ------------------------------------------------------------------- fit_rigid
@@ -592,8 +607,8 @@ def fit_rigid(
     root: int | None = None,
     refine: bool = True,
     max_steps: int = 100,
-    max_sweeps: int = 100,
-    rtol: float = 1e-5,
+    max_sweeps: int = 200,
+    xtol: float = 1e-6,
     max_frames: int = 1000,
     prior_weight: float = DEFAULT_PRIOR_WEIGHT,
     nonrigid_factor: float = 3.0,
@@ -621,9 +636,11 @@ def fit_rigid(
         Run the global refinement after Procrustes (module docstring).
     max_steps
         Levenberg-Marquardt iterations per frame and sweep.
-    max_sweeps, rtol
-        Refinement stops after ``max_sweeps`` or when a sweep lowers the cost by less
-        than ``rtol`` relative.
+    max_sweeps, xtol
+        Refinement stops after ``max_sweeps`` or when an offset update moves no offset by
+        more than ``xtol`` metres without raising the cost (default 1 um: bones settle to
+        ~0.05 mm; at 10 um they were still up to 2 mm from the optimum on the bundled
+        sample, the alternation being slow along bone lengths).
     max_frames
         At most this many frames (evenly spaced) are used.
     prior_weight
@@ -672,6 +689,11 @@ def fit_rigid(
         raise InputError(f"{len(labels)} labels for {n_markers} markers")
     if not np.isfinite(joint_weight) or joint_weight <= 0:
         raise InputError(f"joint_weight must be a positive number, got {joint_weight!r}")
+    if not np.isfinite(xtol) or xtol <= 0 or int(max_sweeps) < 1:
+        raise InputError(
+            f"xtol must be a positive length in metres and max_sweeps at least 1; got xtol={xtol!r}, "
+            f"max_sweeps={max_sweeps!r}"
+        )
     if n_frames < 3:
         raise DegenerateMotionError("fit_rigid needs a motion (at least 3 frames); record more frames")
 
@@ -802,7 +824,7 @@ def fit_rigid(
     prior_w = np.full((n_seg,), float(prior_weight))
     common_args = dict(
         obs_segment=obs_segment, obs_base_weight=base_weight, edges=np.asarray(edges), coef=coef,
-        unknown_segment=unknown_segment, prior_weight=prior_w, rtol=rtol, max_steps=max_steps,
+        unknown_segment=unknown_segment, prior_weight=prior_w, xtol=xtol, max_steps=max_steps,
         max_sweeps=max_sweeps,
     )
     # First pass without offset updates: per-frame residuals to reject non-rigid frames.
@@ -811,7 +833,7 @@ def fit_rigid(
     med = np.median(rms[real])
     mad = 1.4826 * np.median(np.abs(rms[real] - med))
     keep = real & (rms <= med + 5.0 * max(mad, 1e-4 * med))
-    m_th, j_th, sol, sweeps, history, done = _refine(
+    m_th, j_th, sol, history, offset_steps, done = _refine(
         marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=refine, **common_args
     )
     rot = np.asarray(quat_to_matrix(sol["rotations"]))  # (F, S, 3, 3)
@@ -881,11 +903,12 @@ def fit_rigid(
 
     steps = sol["num_steps"][keep]
     results = np.where(sol["done"], RESULT_SUCCESSFUL, RESULT_MAX_STEPS)[keep]
-    n_sweeps = int(sweeps)
+    n_sweeps = len(history)
     converged = bool(done) or not refine
     if not converged:
         warnings.warn(
-            f"rigid refinement stopped after max_sweeps={max_sweeps} sweeps without meeting rtol={rtol}; "
+            f"rigid refinement stopped after max_sweeps={max_sweeps} sweeps without meeting xtol={xtol} m "
+            f"(the last update moved an offset by {offset_steps[-1]:.2g} m); "
             "raise max_sweeps (see skeleton.diagnostics['cost_history'])",
             ConvergenceWarning,
             stacklevel=2,
@@ -900,6 +923,7 @@ def fit_rigid(
         "sweeps": n_sweeps,
         "result": RESULT_SUCCESSFUL if converged else RESULT_MAX_STEPS,
         "cost_history": history,
+        "offset_steps": offset_steps,
         "residual_rms": residual_rms,
         "frames_used": int(keep.sum()),
         "frames_rejected": int((real & ~keep).sum()),

@@ -26,7 +26,7 @@ from jaxskel._ik import (
     inverse_kinematics,
     kinematic_chain,
 )
-from jaxskel._rigid import Skeleton, fit_rigid
+from jaxskel._rigid import SOLVED_JOINT_WEIGHT, Skeleton, fit_rigid
 
 NOISE = 0.002
 SOFT = 0.003
@@ -128,8 +128,40 @@ def test_residuals_at_noise_level_and_no_false_flags(fitted):
     assert sk.nonrigid_markers == ()
     d = sk.diagnostics
     assert d["result"] == 0 and d["ik_failures"] == 0 and 1 <= d["sweeps"] < 30
-    assert d["cost_history"] == sorted(d["cost_history"], reverse=True)  # never increases
+    # stopped at a fixed point of the alternation, at its lowest cost (an accelerated
+    # update may overshoot on the way and be restarted)
+    assert len(d["cost_history"]) == len(d["offset_steps"]) == d["sweeps"]
+    assert d["offset_steps"][-1] <= 1e-6
+    assert d["cost_history"][-1] <= min(d["cost_history"]) * (1 + 1e-9)
     assert d["residual_rms"] == pytest.approx(np.sqrt(np.mean(actual**2)), rel=0.3)
+
+
+def test_refinement_stops_at_the_optimum_with_lightly_weighted_joints():
+    """With the joint centres weighted as fit_skeleton weighs its solved ones (0.1 of a
+    marker) the pose/offset alternation creeps along the bone lengths. The default stop
+    (no offset moved by more than 1 um) must be where a 10^4 times tighter run ends: bones
+    and offsets within 0.1 mm. The relative-cost stop used before ended 0.3-0.9 mm away
+    (seeds 0-2) and called that converged; accelerated, it is 0.01-0.03 mm."""
+    body = synth.full_body(seed=1)
+    trial, truth = synth.simulate(body, "calibration", duration=DURATION, seed=1, noise=NOISE, soft_tissue=SOFT)
+    joints = truth.joint_positions + np.random.default_rng(1).normal(0.0, 0.002, truth.joint_positions.shape)
+    kw = dict(max_frames=FIT_FRAMES, joint_weight=SOLVED_JOINT_WEIGHT)
+    sk = fit_rigid(trial, truth.marker_segment, truth.edges, joints, **kw)
+    ref = fit_rigid(trial, truth.marker_segment, truth.edges, joints, xtol=1e-10, max_sweeps=1500, **kw)
+    assert sk.diagnostics["result"] == ref.diagnostics["result"] == 0
+    assert ref.diagnostics["sweeps"] > 2 * sk.diagnostics["sweeps"]
+    np.testing.assert_allclose(sk.bone_lengths, ref.bone_lengths, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(sk.marker_offsets, ref.marker_offsets, rtol=0, atol=1e-4)
+
+
+def test_refinement_that_runs_out_of_sweeps_says_so():
+    body = synth.full_body(seed=1)
+    trial, truth = synth.simulate(body, "calibration", duration=DURATION, seed=1, noise=NOISE, soft_tissue=SOFT)
+    with pytest.warns(ConvergenceWarning, match=r"max_sweeps=3 sweeps without meeting xtol"):
+        sk = fit_rigid(trial, truth.marker_segment, truth.edges, truth.joint_positions, max_frames=FIT_FRAMES,
+                       max_sweeps=3)
+    d = sk.diagnostics
+    assert d["result"] != 0 and d["sweeps"] == 3 and d["offset_steps"][-1] > 1e-6
 
 
 def test_loose_marker_is_flagged():
@@ -191,6 +223,9 @@ def test_fit_rigid_rejects_bad_input(seed0):
     cyclic[-1] = (cyclic[-1, 1], cyclic[0, 1])
     with pytest.raises(InputError, match="tree"):
         fit_rigid(trial, truth.marker_segment, cyclic, jp)
+    for bad in (dict(xtol=0.0), dict(xtol=float("nan")), dict(max_sweeps=0)):
+        with pytest.raises(InputError, match="xtol must be a positive length"):
+            fit_rigid(trial, truth.marker_segment, truth.edges, jp, **bad)
     no_hand = truth.marker_segment.copy()
     hand = truth.segment_names.index("l_hand")
     no_hand[no_hand == hand] = -1
