@@ -27,15 +27,64 @@ __all__ = ["main"]
 CACHE_MAX_BYTES = 2 * 1024**3
 
 
+def _cpu_identity() -> str:
+    """The host CPU as XLA:CPU compiles for it: model and instruction-set flags.
+
+    Linux: the first processor's ``model name`` and ``flags`` lines of ``/proc/cpuinfo``;
+    elsewhere what :mod:`platform` knows (processor, machine).
+    """
+    try:
+        lines = Path("/proc/cpuinfo").read_text(errors="replace").splitlines()
+    except OSError:
+        lines = []
+    wanted = ("model name", "flags", "features", "cpu part")  # x86; aarch64 names the last two
+    found: dict[str, str] = {}
+    for line in lines:
+        key, _, value = line.partition(":")
+        key = key.strip().lower()
+        if key in wanted and key not in found:
+            found[key] = " ".join(sorted(value.split())) if key in ("flags", "features") else value.strip()
+    if found:
+        return "|".join(f"{k}={found[k]}" for k in sorted(found))
+    import platform
+
+    return f"processor={platform.processor()}|machine={platform.machine()}"
+
+
+def _machine_cache_dir(base: Path) -> Path:
+    """``base/<arch>-<hash of the CPU identity and jaxlib version>``.
+
+    XLA:CPU compiles for the host's instruction set, and JAX's cache key does not
+    include it. Loading a program compiled on another CPU only logs "Machine type used
+    for XLA:CPU compilation doesn't match ... could lead to execution errors such as
+    SIGILL" and runs it. A cache in a home directory shared by the nodes of a cluster
+    (``jaxskel fit-batch --scheduler``), or a VM moved to another host, would do that.
+    So each CPU model and flag set, and each jaxlib, gets its own subdirectory.
+    """
+    import hashlib
+    import platform
+
+    try:
+        import jaxlib
+
+        version = getattr(jaxlib, "__version__", "")
+    except ImportError:  # pragma: no cover - jax needs jaxlib
+        version = ""
+    digest = hashlib.sha256(f"{_cpu_identity()}|jaxlib={version}".encode()).hexdigest()[:16]
+    return base / f"{platform.machine() or 'cpu'}-{digest}"
+
+
 def _enable_compile_cache() -> None:
     """Persistent JAX compilation cache, so a second process skips compilation.
 
-    Location: ``$JAXSKEL_CACHE_DIR`` or ``~/.cache/jaxskel/jax``; set
-    ``JAXSKEL_CACHE_DIR=""`` to disable.
+    Location: a subdirectory per CPU model and jaxlib (:func:`_machine_cache_dir`) of
+    ``$JAXSKEL_CACHE_DIR`` or ``~/.cache/jaxskel/jax``; set ``JAXSKEL_CACHE_DIR=""`` to
+    disable.
     """
-    cache = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
-    if not cache:
+    base = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
+    if not base:
         return
+    cache = str(_machine_cache_dir(Path(base)))
     try:
         # JAX locks cache entries only with filelock and a size bound (its LRU bookkeeping);
         # unbounded, entries are written in place unlocked while parallel fits may read them

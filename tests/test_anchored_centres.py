@@ -153,3 +153,28 @@ def test_fit_skeleton_reports_the_refit_and_accepts_the_paper_mode():
         assert abs(np.max(got) - middle) / middle < 0.003, (mode, got, truth.bone_lengths)
     with pytest.raises(jaxskel.InputError, match="joint_centres"):
         jaxskel.fit_skeleton(trial, 3, joint_centres="fixed")
+
+
+def test_one_problem_per_call_gives_the_batched_answers(monkeypatch):
+    """On a CPU each (joint, anchor) problem is its own call, since a vmapped while loop
+    charges every member its slowest member's steps; the answers must be the batched
+    call's (what an accelerator runs)."""
+    import jaxskel._anchored_centres as module
+
+    trial, truth = synth.simulate(synth.full_body(seed=0), duration=8.0, seed=0, noise=0.002, soft_tissue=0.002)
+    seen = []
+    solve_all = module._solve_all
+    monkeypatch.setattr(module, "_solve_all", lambda problems, one_per_call=None: seen.append(problems) or solve_all(problems))
+    x, mask = trial.to_arrays()
+    jp = truth.joint_positions + np.random.default_rng(0).normal(0.0, 0.003, truth.joint_positions.shape)
+    anchored_centres(x, mask, truth.marker_segment, truth.edges, jp)
+    (problems,) = seen
+    alone = solve_all(problems, one_per_call=True)
+    together = solve_all(problems, one_per_call=False)
+    assert all(a.shape == b.shape and a.shape[0] == len(problems) for a, b in zip(alone, together))
+    assert len(problems) >= truth.n_joints  # every joint has an anchor with three markers
+    ok = (alone[4] == 0) & (together[4] == 0)
+    assert ok.all()
+    np.testing.assert_allclose(alone[0], together[0], rtol=0, atol=1e-6)  # c*, metres
+    np.testing.assert_allclose(alone[2], together[2], rtol=1e-6, atol=1e-12)  # C(c*)
+    np.testing.assert_allclose(alone[5], together[5], rtol=1e-4)  # Hessian eigenvalues

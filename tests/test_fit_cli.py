@@ -5,12 +5,14 @@ import os
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
 import jaxskel
+from jaxskel._cli import _machine_cache_dir
 from jaxskel import synth
 from jaxskel._cli import main
 
@@ -284,8 +286,27 @@ def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
     assert all(r.returncode == 0 for r in runs), [r.stderr[-2000:] for r in runs]
     (value0, hits0), (value1, hits1) = (r.stdout.split() for r in runs)
     assert value0 == value1 and int(hits0) == 0 and int(hits1) >= 1
-    entries = list((tmp_path / "cache").glob("*-cache"))
-    assert entries and (tmp_path / "cache" / ".lockfile").exists()
+    (machine,) = (tmp_path / "cache").iterdir()  # one subdirectory: this CPU and jaxlib
+    assert machine == _machine_cache_dir(tmp_path / "cache")
+    entries = list(machine.glob("*-cache"))
+    assert entries and (machine / ".lockfile").exists()
     off = subprocess.run([sys.executable, "-c", _CACHE_PROBE.replace("assert jax.config", "assert not jax.config")],
                          env={**env, "JAXSKEL_CACHE_DIR": ""}, capture_output=True, text=True, timeout=120)
     assert off.returncode == 0, off.stderr[-2000:]
+
+
+def test_compile_cache_is_kept_apart_per_cpu_and_jaxlib(monkeypatch):
+    """XLA:CPU compiles for the host's instruction set and JAX's cache key leaves it out,
+    so a cache shared by different CPUs (a cluster's home directory) must not mix them."""
+    from jaxskel import _cli
+
+    base = Path("/shared/cache")
+    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    here = _cli._machine_cache_dir(base)
+    assert here.parent == base and here == _cli._machine_cache_dir(base)  # stable
+    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2")
+    assert _cli._machine_cache_dir(base) != here  # a CPU without AVX-512
+    # the real identity names the instruction set (x86 flags or aarch64 features)
+    monkeypatch.undo()
+    identity = _cli._cpu_identity()
+    assert identity and ("flags=" in identity or "features=" in identity or "processor=" in identity)
