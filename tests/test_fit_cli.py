@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 import jaxskel
-from jaxskel._cli import _machine_cache_dir
 from jaxskel import synth
-from jaxskel._cli import main
+from jaxskel._cli import _machine_cache_dir, main
 
 
 @pytest.fixture(scope="module")
@@ -306,6 +305,11 @@ def test_compile_cache_is_kept_apart_per_cpu_and_jaxlib(monkeypatch):
     assert here.parent == base and here == _cli._machine_cache_dir(base)  # stable
     monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2")
     assert _cli._machine_cache_dir(base) != here  # a CPU without AVX-512
+    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    import jaxlib
+
+    monkeypatch.setattr(jaxlib, "__version__", "0.0.1")
+    assert _cli._machine_cache_dir(base) != here  # another jaxlib
     # the real identity names the instruction set (x86 flags or aarch64 features)
     monkeypatch.undo()
     identity = _cli._cpu_identity()
