@@ -69,6 +69,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._padding import bucket_size
 from ._rigid import _align_to_reference, _procrustes
+from ._topology import _uses_cpu
 
 __all__ = ["AnchoredCentres", "anchored_centres"]
 
@@ -236,12 +237,13 @@ def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None
     costs as much for a finished problem as for a running one. The steps differ widely
     (bundled sample: 17-55 for most, 136-300 for a few barely exercised joints), so on a
     CPU, where one problem's frames already fill the cores, each problem is its own call
-    and pays only its own steps (bundled sample, 27 problems: 4.7 -> 1.1 s warm,
-    6.4 -> 3.1 s with compilation, centres within 3e-11 m); on an accelerator, which needs the width, they go in one call,
-    padded to a bucket. ``one_per_call``: force either way (``None``: by the device).
+    and pays only its own steps (bundled sample, 27 problems: 4.7 -> 1.1 s warm, 6.4 ->
+    3.1 s with compilation, centres within 3e-11 m); on an accelerator, which needs the
+    width, they go in one call, padded to a bucket. ``one_per_call``: force either way
+    (``None``: by the default device, as the tree joints of :mod:`jaxskel._topology`).
     """
     if one_per_call is None:
-        one_per_call = jax.devices()[0].platform == "cpu"
+        one_per_call = _uses_cpu(None)
     if one_per_call:
         outs = [_solve(*(a[None] for a in p)) for p in problems]
         return tuple(np.concatenate([np.asarray(o[k]) for o in outs]) for k in range(len(outs[0])))

@@ -64,13 +64,9 @@ def _machine_cache_dir(base: Path) -> Path:
     import hashlib
     import platform
 
-    try:
-        import jaxlib
+    import jaxlib
 
-        version = getattr(jaxlib, "__version__", "")
-    except ImportError:  # pragma: no cover - jax needs jaxlib
-        version = ""
-    digest = hashlib.sha256(f"{_cpu_identity()}|jaxlib={version}".encode()).hexdigest()[:16]
+    digest = hashlib.sha256(f"{_cpu_identity()}|jaxlib={jaxlib.__version__}".encode()).hexdigest()[:16]
     return base / f"{platform.machine() or 'cpu'}-{digest}"
 
 

@@ -158,8 +158,8 @@ class Skeleton:
         ``max_sweeps``), ``cost_history`` (mean squared marker residual per sweep, m^2),
         ``offset_steps`` (per sweep, the largest offset move of its update, m; the
         refinement stops below ``xtol``), ``residual_rms`` (m), ``frames_used``,
-        ``frames_rejected``, ``rest_frame``, ``ik_steps_mean``, ``ik_steps_max``, ``ik_failures``, ``procrustes_segments``
-        (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
+        ``frames_rejected``, ``rest_frame``, ``ik_steps_mean``, ``ik_steps_max``,
+        ``ik_failures``, ``procrustes_segments`` (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
         ``hinge_shift`` (per joint: how far it was moved along its axis into its limb
         plane, m, signed along ``hinge_axis``; 0 for joints not moved) and ``hinge_axis``
         (per joint: that axis in the parent frame, NaN for joints not moved).
@@ -532,9 +532,9 @@ def _refine(
     Alternating the two converges linearly and slowly along directions that couple
     poses and offsets (a bone's length against the poses of its two segments). On the
     bundled sample the over-relaxed iteration used before (below) was still 4 mm from
-    the optimum after 100 sweeps and needed ~400 to settle. The updates are therefore Anderson-accelerated
-    (:mod:`jaxskel._anderson`, the last ``_ANDERSON_MEMORY`` + 1 pairs), restarted
-    whenever the cost rose. Measured against the over-relaxation used before
+    the optimum after 100 sweeps and needed ~400 to settle. The updates are therefore
+    Anderson-accelerated (:mod:`jaxskel._anderson`, the last ``_ANDERSON_MEMORY`` + 1
+    pairs), restarted whenever the cost rose. Measured against the over-relaxation used before
     (``theta + omega (theta* - theta)``, ``omega`` growing to 5, stopped at a relative
     cost decrease of 1e-5): bundled sample 100 sweeps and bones up to 4.2 mm from the
     optimum -> 91 sweeps and 0.05 mm; synthetic full body with 3 mm soft tissue 21-23 ->

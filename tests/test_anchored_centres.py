@@ -164,7 +164,9 @@ def test_one_problem_per_call_gives_the_batched_answers(monkeypatch):
     trial, truth = synth.simulate(synth.full_body(seed=0), duration=8.0, seed=0, noise=0.002, soft_tissue=0.002)
     seen = []
     solve_all = module._solve_all
-    monkeypatch.setattr(module, "_solve_all", lambda problems, one_per_call=None: seen.append(problems) or solve_all(problems))
+    monkeypatch.setattr(
+        module, "_solve_all", lambda problems, one_per_call=None: seen.append(problems) or solve_all(problems)
+    )
     x, mask = trial.to_arrays()
     jp = truth.joint_positions + np.random.default_rng(0).normal(0.0, 0.003, truth.joint_positions.shape)
     anchored_centres(x, mask, truth.marker_segment, truth.edges, jp)
