@@ -598,6 +598,13 @@ def _refine(
 
 
 # ------------------------------------------------------------------- fit_rigid
+def _positive_number(value: object) -> bool:
+    """A finite real number > 0 (not a bool). The type is checked first, so a string or
+    ``None`` gets fit_rigid's own message rather than numpy's TypeError."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    return real and bool(np.isfinite(value)) and value > 0
+
+
 def fit_rigid(
     trial: Trial | tuple[np.ndarray, np.ndarray],
     marker_segment: Sequence[int] | np.ndarray,
@@ -687,11 +694,12 @@ def fit_rigid(
         labels = trial_labels or tuple(f"M{i}" for i in range(n_markers))
     if len(labels) != n_markers:
         raise InputError(f"{len(labels)} labels for {n_markers} markers")
-    if not np.isfinite(joint_weight) or joint_weight <= 0:
+    if not _positive_number(joint_weight):
         raise InputError(f"joint_weight must be a positive number, got {joint_weight!r}")
-    if not np.isfinite(xtol) or xtol <= 0 or int(max_sweeps) < 1:
+    whole_sweeps = isinstance(max_sweeps, (int, np.integer)) and not isinstance(max_sweeps, bool)
+    if not (_positive_number(xtol) and whole_sweeps and max_sweeps >= 1):
         raise InputError(
-            f"xtol must be a positive length in metres and max_sweeps at least 1; got xtol={xtol!r}, "
+            f"xtol must be a positive length in metres and max_sweeps a whole number >= 1; got xtol={xtol!r}, "
             f"max_sweeps={max_sweeps!r}"
         )
     if n_frames < 3:

@@ -223,9 +223,13 @@ def test_fit_rigid_rejects_bad_input(seed0):
     cyclic[-1] = (cyclic[-1, 1], cyclic[0, 1])
     with pytest.raises(InputError, match="tree"):
         fit_rigid(trial, truth.marker_segment, cyclic, jp)
-    for bad in (dict(xtol=0.0), dict(xtol=float("nan")), dict(max_sweeps=0)):
+    for bad in (dict(xtol=0.0), dict(xtol=float("nan")), dict(xtol="1e-6"), dict(xtol=None), dict(max_sweeps=0),
+                dict(max_sweeps="200"), dict(max_sweeps=2.5)):
         with pytest.raises(InputError, match="xtol must be a positive length"):
             fit_rigid(trial, truth.marker_segment, truth.edges, jp, **bad)
+    for bad in (0.0, -1.0, float("inf"), "0.1", None, True):
+        with pytest.raises(InputError, match="joint_weight must be a positive number"):
+            fit_rigid(trial, truth.marker_segment, truth.edges, jp, joint_weight=bad)
     no_hand = truth.marker_segment.copy()
     hand = truth.segment_names.index("l_hand")
     no_hand[no_hand == hand] = -1
