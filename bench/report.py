@@ -181,6 +181,8 @@ def targets(records: list[dict]) -> list[dict]:
     pipe10 = _find(records, "pipeline", "full body, 10 s")
     if pipe10 is not None and "fit" in pipe10["jaxskel"]:
         warm_fit = pipe10["jaxskel"]["fit"]["warm_s"]
+    if cli is not None and cli.get("warm_in_process_s"):
+        warm_fit = cli["warm_in_process_s"]  # the same command, warm, measured in the same run
     if cli is not None:
         runs = {r["run"]: r for r in cli["runs"]}
         cold = runs["cold (empty cache)"]["wall_s"]
@@ -189,9 +191,13 @@ def targets(records: list[dict]) -> list[dict]:
         out.append({"target": "cold `jaxskel fit` of a new recording < 30 s incl. compilation",
                     "measured": f"{cold:.1f} s", "met": cold < 30.0, "device": _device(cli)})
         saved = (nocache - second) / max(nocache - (warm_fit or 0.0), 1e-9)
+        code_only = runs.get("new recording, compiled-code cache from run 4")
         out.append({"target": "second process with the persistent cache pays almost no compilation (>= 80 % saved)",
                     "measured": f"{second:.1f} s vs {nocache:.1f} s without cache"
-                    + (f" and {warm_fit:.1f} s warm in-process: {saved:.0%} of the overhead saved" if warm_fit else ""),
+                    + (f" and {warm_fit:.1f} s warm in-process: {saved:.0%} of the overhead saved" if warm_fit else "")
+                    + (f" (compiled-code cache alone: {code_only['wall_s']:.1f} s"
+                       + (f", {(nocache - code_only['wall_s']) / max(nocache - warm_fit, 1e-9):.0%}" if warm_fit else "")
+                       + ")" if code_only else ""),
                     "met": saved >= 0.8 if warm_fit else None, "device": _device(cli)})
     return out
 

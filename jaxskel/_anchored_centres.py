@@ -67,6 +67,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _program_cache
 from ._padding import bucket_size
 from ._rigid import _align_to_reference, _procrustes
 from ._topology import _uses_cpu
@@ -245,12 +246,13 @@ def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None
     if one_per_call is None:
         one_per_call = _uses_cpu(None)
     if one_per_call:
-        outs = [_solve(*(a[None] for a in p)) for p in problems]
+        outs = [_program_cache.call(_solve, *(a[None] for a in p)) for p in problems]
         return tuple(np.concatenate([np.asarray(o[k]) for o in outs]) for k in range(len(outs[0])))
     # padding problems: all weights 0, so a zero cost that BFGS leaves at once
     empty = problems[0][:4] + (np.zeros_like(problems[0][4]),)
     padded = problems + [empty] * (bucket_size(len(problems), minimum=8) - len(problems))
-    return tuple(np.asarray(v)[: len(problems)] for v in _solve(*(np.stack(p) for p in zip(*padded))))
+    out = _program_cache.call(_solve, *(np.stack(p) for p in zip(*padded)))
+    return tuple(np.asarray(v)[: len(problems)] for v in out)
 
 
 def anchored_centres(

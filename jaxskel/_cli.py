@@ -71,11 +71,12 @@ def _machine_cache_dir(base: Path) -> Path:
 
 
 def _enable_compile_cache() -> None:
-    """Persistent JAX compilation cache, so a second process skips compilation.
+    """Persistent JAX compilation cache, so a second process skips compilation, and the
+    solvers' exported programs (``<cache>-programs``), so it skips their tracing.
 
     Location: a subdirectory per CPU model and jaxlib (:func:`_machine_cache_dir`) of
     ``$JAXSKEL_CACHE_DIR`` or ``~/.cache/jaxskel/jax``; set ``JAXSKEL_CACHE_DIR=""`` to
-    disable.
+    disable both, ``JAXSKEL_PROGRAM_CACHE=0`` to disable the saved programs alone.
     """
     base = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
     if not base:
@@ -102,7 +103,14 @@ def _enable_compile_cache() -> None:
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
         jax.config.update("jax_compilation_cache_dir", cache)  # last: only once locked and bounded
     except (OSError, AttributeError):  # read-only home or an old jax: run without the cache
-        pass
+        return
+    # The solvers' traced and lowered programs beside it: a new process then skips their
+    # tracing too (jaxskel._program_cache). JAXSKEL_PROGRAM_CACHE=0 keeps only the compiled code.
+    if os.environ.get("JAXSKEL_PROGRAM_CACHE", "1") == "0":
+        return
+    from . import _program_cache
+
+    _program_cache.set_directory(cache + "-programs")
 
 
 def _parser() -> argparse.ArgumentParser:

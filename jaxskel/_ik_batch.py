@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _program_cache
 from ._padding import bucket_size
 from ._sym3 import SYM, UPPER, sym_apply, sym_inverse
 
@@ -923,7 +924,9 @@ def solve(
 
     def run(k):
         sl = slice(k * chunk, (k + 1) * chunk)
-        out = solve_chunk(model, xp[sl], mp[sl], tp[sl], qp[sl], pp[sl], pw, flag, limit, passes)
+        out = _program_cache.call(
+            solve_chunk, model, xp[sl], mp[sl], tp[sl], qp[sl], pp[sl], pw, flag, limit, passes
+        )
         return {key: np.asarray(val) for key, val in out.items()}
 
     n_chunks = (n + pad) // chunk

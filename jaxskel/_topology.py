@@ -37,6 +37,7 @@ import numpy as np
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._jointcost import _settings, _solve_batch
 from ._jointcost_init import algebraic_start, consistency_start_batched
+from . import _program_cache
 from ._padding import bucket_size
 from ._segment import Segmentation
 from ._tree import mst_edges, root_tree, tree_path
@@ -216,7 +217,8 @@ def _chunk_solve(xs, ms, alpha, c0, r0, given, controls, *, settings, start):
         ca, ra = jax.vmap(algebraic_start)(xs, ms)
         c0 = jnp.where(given[:, None, None], c0, ca)
         r0 = jnp.where(given[:, None], r0, ra)
-    return _solve_batch(xs, ms, alpha, c0, r0, True, True, controls, settings=settings)
+    sol = _solve_batch(xs, ms, alpha, c0, r0, True, True, controls, settings=settings)
+    return {f.name: getattr(sol, f.name) for f in dataclasses.fields(sol)}  # a dict: exportable
 
 
 def solve_chunked(
@@ -296,8 +298,11 @@ def solve_chunked(
             ctrl = jax.device_put(controls, device)
         else:
             ctrl = controls
-        sol = _chunk_solve(*args, ctrl, settings=settings, start=start)
-        pending.append((lo, {f.name: getattr(sol, f.name) for f in dataclasses.fields(sol)}))
+        if device is None:  # saved programs are for the default device
+            out = _program_cache.call(_chunk_solve, *args, ctrl, settings=settings, start=start)
+        else:
+            out = _chunk_solve(*args, ctrl, settings=settings, start=start)
+        pending.append((lo, out))
         if len(pending) >= in_flight * devices_in_flight:
             collect()
     while pending:
@@ -513,7 +518,8 @@ def _consistency_starts(xs: np.ndarray, ms: np.ndarray) -> tuple[np.ndarray, np.
     if need.size:
         # Pad the subset to a bucket size: one compiled start for any number of such pairs.
         rows = np.concatenate([need, np.full(bucket_size(need.size, minimum=4) - need.size, need[0])])
-        c, r, ok = (np.asarray(v)[: need.size] for v in consistency_start_batched(xs[rows], ms[rows]))
+        starts = _program_cache.call(consistency_start_batched, xs[rows], ms[rows])
+        c, r, ok = (np.asarray(v)[: need.size] for v in starts)
         c0[need], r0[need], given[need] = c, r, ok
     return c0, r0, given
 

@@ -1,0 +1,173 @@
+"""Saved exported programs (jaxskel._program_cache): same answers as the jitted call,
+one program per distinct trace, loaded (not re-traced) by a fresh process, robust to
+torn files, bounded, and out of the way of differentiation."""
+
+import functools
+import os
+import subprocess
+import sys
+
+import equinox as eqx
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxskel import _program_cache, synth
+
+
+class _Model(eqx.Module):
+    weights: jax.Array
+    offset: tuple
+    power: int = eqx.field(static=True)
+
+
+@functools.partial(jax.jit, static_argnames=("scale",))
+def _program(model, x, *, scale):
+    y = model.weights * x**model.power + model.offset[0] - model.offset[1]
+    return {"value": scale * jnp.sum(jnp.sin(y)), "y": y}
+
+
+def _model(power=2, n=4, dtype=jnp.float64):
+    return _Model(jnp.linspace(0.5, 1.5, n, dtype=dtype), (jnp.asarray(0.25, dtype), jnp.ones(n, dtype)), power)
+
+
+@pytest.fixture
+def folder(tmp_path):
+    _program_cache.set_directory(tmp_path)
+    yield tmp_path
+    _program_cache.set_directory(None)
+
+
+def _saved(folder):
+    return sorted(p.name for p in folder.glob("*.jaxexport"))
+
+
+def _no_export(monkeypatch):
+    def refuse(*_, **__):
+        raise AssertionError("traced and exported again")
+
+    monkeypatch.setattr(jax.export, "export", refuse)
+
+
+def test_without_a_directory_it_is_the_jitted_call(monkeypatch):
+    _program_cache.set_directory(None)
+    _no_export(monkeypatch)
+    x = jnp.arange(4.0)
+    out = _program_cache.call(_program, _model(), x, scale=2.0)
+    assert float(out["value"]) == float(_program(_model(), x, scale=2.0)["value"])
+
+
+def test_saved_program_gives_the_jitted_answer_and_serves_a_fresh_start(folder, monkeypatch):
+    x = jnp.arange(4.0) / 3
+    want = _program(_model(), x, scale=2.0)
+    got = _program_cache.call(_program, _model(), x, scale=2.0)
+    assert len(_saved(folder)) == 1 and _saved(folder)[0].startswith("_program-")
+    np.testing.assert_array_equal(got["y"], want["y"])
+    assert float(got["value"]) == float(want["value"])
+    # A new process: nothing in memory, the program read from disk, never re-traced.
+    _program_cache.set_directory(folder)
+    _no_export(monkeypatch)
+    again = _program_cache.call(_program, _model(), x, scale=2.0)
+    assert float(again["value"]) == float(want["value"])
+    # New values of the same shapes and types: the same program.
+    other = _program_cache.call(_program, _model(), x + 1.0, scale=2.0)
+    assert float(other["value"]) == float(_program(_model(), x + 1.0, scale=2.0)["value"])
+    assert len(_saved(folder)) == 1
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["static argument", "static field", "shape", "dtype", "weak type", "tree", "source"],
+)
+def test_whatever_changes_the_trace_gets_its_own_program(folder, monkeypatch, change):
+    x = jnp.arange(4.0)
+    first = _program_cache.call(_program, _model(), x, scale=2.0)
+    model, arg, scale = _model(), x, 2.0
+    if change == "static argument":
+        scale = 3.0
+    elif change == "static field":
+        model = _model(power=3)
+    elif change == "shape":
+        model, arg = _model(n=5), jnp.arange(5.0)
+    elif change == "dtype":
+        model, arg = _model(dtype=jnp.float32), x.astype(jnp.float32)
+    elif change == "weak type":
+        model = eqx.tree_at(lambda m: m.offset, model, (0.25, jnp.ones(4)))  # a Python float: weakly typed
+    elif change == "tree":
+        model = eqx.tree_at(lambda m: m.offset, model, [jnp.asarray(0.25), jnp.ones(4)])  # list, not tuple
+    else:  # an edit of the package's source, seen by the next process
+        monkeypatch.setattr(_program_cache, "_source_digest", lambda: "edited")
+        _program_cache.set_directory(folder)
+        assert float(_program_cache.call(_program, _model(), x, scale=2.0)["value"]) == float(first["value"])
+    if change != "source":
+        got = _program_cache.call(_program, model, arg, scale=scale)
+        np.testing.assert_allclose(got["y"], _program(model, arg, scale=scale)["y"], rtol=1e-6)
+    assert len(_saved(folder)) == 2
+
+
+def test_torn_program_file_is_replaced(folder):
+    x = jnp.arange(4.0)
+    want = float(_program_cache.call(_program, _model(), x, scale=2.0)["value"])
+    (name,) = _saved(folder)
+    (folder / name).write_bytes(b"not a program")
+    _program_cache.set_directory(folder)
+    assert float(_program_cache.call(_program, _model(), x, scale=2.0)["value"]) == want
+    assert _saved(folder) == [name] and (folder / name).stat().st_size > 1000
+
+
+def test_gradients_bypass_the_saved_program(folder):
+    def loss(x):
+        return _program_cache.call(_program, _model(), x, scale=2.0)["value"]
+
+    x = jnp.arange(4.0) / 3
+    grad = jax.grad(loss)(x)
+    np.testing.assert_allclose(grad, jax.grad(lambda v: _program(_model(), v, scale=2.0)["value"])(x), rtol=1e-12)
+    assert _saved(folder) == []
+
+
+def test_folder_is_bounded_oldest_use_first(folder, monkeypatch):
+    x = jnp.arange(4.0)
+    _program_cache.call(_program, _model(), x, scale=1.0)
+    (first,) = _saved(folder)
+    size = (folder / first).stat().st_size
+    os.utime(folder / first, (1, 1))  # long unused
+    monkeypatch.setattr(_program_cache, "MAX_BYTES", int(1.5 * size))
+    _program_cache.call(_program, _model(), x, scale=2.0)
+    assert len(_saved(folder)) == 1 and _saved(folder) != [first]
+
+
+_COUNTING_FIT = """
+import sys, jax
+exports = []
+export = jax.export.export
+jax.export.export = lambda *a, **k: exports.append(1) or export(*a, **k)
+from jaxskel._cli import main
+code = main(["fit", sys.argv[1], "-o", sys.argv[2], "--quiet"])
+print("exports", len(exports))
+sys.exit(code)
+"""
+
+
+def test_second_command_line_process_loads_every_solver_program(tmp_path):
+    """End to end: the first ``jaxskel fit`` exports the solver programs (joint costs,
+    tree joints, anchored centres, IK); a second process on the same recording exports
+    none, and writes the same result, bit for bit."""
+    trial, _ = synth.simulate(synth.linkage(), duration=8.0, seed=2, noise=0.001)
+    src = tmp_path / "chain.c3d"
+    trial.save(src)
+    env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
+    counts = []
+    for name in ("first.h5", "second.h5"):
+        run = subprocess.run([sys.executable, "-c", _COUNTING_FIT, str(src), str(tmp_path / name)], env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-3000:]
+        counts.append(int(run.stdout.split("exports")[-1]))
+    (programs,) = (tmp_path / "cache").glob("*-programs")
+    names = {p.name.split("-")[0] for p in programs.glob("*.jaxexport")}
+    assert {"_chunk_solve", "_solve", "solve_chunk"} <= names
+    assert counts[0] >= 3 and counts[1] == 0
+    with h5py.File(tmp_path / "first.h5") as a, h5py.File(tmp_path / "second.h5") as b:
+        for key in ("topology/edges", "joints/positions", "skeleton/bone_lengths", "motion/rotations"):
+            np.testing.assert_array_equal(a[key][()], b[key][()], err_msg=key)
