@@ -14,7 +14,8 @@ in both processes, so the compilation cache finds its compiled code too. ``key``
 SHA-256 over everything that decides the traced program:
 
 * the source of every module of this package (any edit gives new keys),
-* the jax and jaxlib versions, the backend, the x64 flag,
+* the versions of jax and of the libraries traced into the programs (jaxlib,
+  optimistix, equinox, lineax, numpy), the backend, the x64 flag,
 * the function's module and name, its static keyword arguments (``repr``), the
   argument tree (``str`` of the treedef: container types, equinox fields and their
   static values) and every leaf's type (dtype, shape, weak type).
@@ -34,6 +35,7 @@ import logging
 import os
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -76,14 +78,26 @@ def _supported() -> bool:
     return hasattr(jax, "export") and hasattr(jax, "typeof")
 
 
+#: Libraries whose code is traced into the programs besides jax (their versions are keyed).
+_TRACED_LIBRARIES = ("jaxlib", "optimistix", "equinox", "lineax", "numpy")
+
+
 @functools.lru_cache(maxsize=1)
 def _source_digest() -> str:
-    """SHA-256 over this package's Python sources (paths and contents)."""
+    """SHA-256 over this package's Python sources (paths and contents) and the versions
+    of the libraries traced into its programs."""
+    from importlib import metadata
+
     root = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         digest.update(str(path.relative_to(root)).encode())
         digest.update(path.read_bytes())
+    for name in _TRACED_LIBRARIES:
+        try:
+            digest.update(f"{name}=={metadata.version(name)}".encode())
+        except metadata.PackageNotFoundError:
+            digest.update(f"{name} missing".encode())
     return digest.hexdigest()
 
 
@@ -116,7 +130,7 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
     name = getattr(fn, "__name__", "program")
     key = hashlib.sha256(
         repr((
-            _source_digest(), jax.__version__, _jaxlib_version(), jax.default_backend(),
+            _source_digest(), jax.__version__, jax.default_backend(),
             bool(jax.config.jax_enable_x64), getattr(fn, "__module__", ""), getattr(fn, "__qualname__", name),
             sorted((k, repr(v)) for k, v in static.items()), str(treedef), [str(t) for t in types],
         )).encode()
@@ -140,12 +154,6 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
 
             return plain
     return jax.jit(exported.call)
-
-
-def _jaxlib_version() -> str:
-    import jaxlib
-
-    return jaxlib.__version__
 
 
 def _load(path: Path) -> Any:
@@ -194,6 +202,12 @@ def _prune(folder: Path) -> None:
         except OSError:
             continue
         entries.append((st.st_mtime, st.st_size, p))
+    for p in folder.glob(f"*{_SUFFIX}*.tmp"):  # left by a process killed while writing
+        try:
+            if time.time() - p.stat().st_mtime > 3600:
+                p.unlink()
+        except OSError:
+            pass
     total = sum(size for _, size, _ in entries)
     for _, size, p in sorted(entries):
         if total <= MAX_BYTES:

@@ -171,3 +171,30 @@ def test_second_command_line_process_loads_every_solver_program(tmp_path):
     with h5py.File(tmp_path / "first.h5") as a, h5py.File(tmp_path / "second.h5") as b:
         for key in ("topology/edges", "joints/positions", "skeleton/bone_lengths", "motion/rotations"):
             np.testing.assert_array_equal(a[key][()], b[key][()], err_msg=key)
+
+
+def test_key_follows_the_traced_libraries_versions(monkeypatch):
+    """An upgrade of optimistix (or equinox, lineax, ...) changes what is traced: new keys."""
+    from importlib import metadata
+
+    _program_cache._source_digest.cache_clear()
+    before = _program_cache._source_digest()
+    real = metadata.version
+    monkeypatch.setattr(metadata, "version", lambda name: "99.0" if name == "optimistix" else real(name))
+    _program_cache._source_digest.cache_clear()
+    try:
+        assert _program_cache._source_digest() != before
+    finally:
+        monkeypatch.undo()
+        _program_cache._source_digest.cache_clear()
+    assert _program_cache._source_digest() == before
+
+
+def test_stale_temporary_files_are_cleared(folder):
+    stale = folder / "_program-0.jaxexportab12.tmp"
+    stale.write_bytes(b"half a program")
+    os.utime(stale, (1, 1))
+    fresh = folder / "_program-1.jaxexportcd34.tmp"  # perhaps another process writing now
+    fresh.write_bytes(b"being written")
+    _program_cache.call(_program, _model(), jnp.arange(4.0), scale=2.0)
+    assert not stale.exists() and fresh.exists()
