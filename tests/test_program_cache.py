@@ -198,3 +198,14 @@ def test_stale_temporary_files_are_cleared(folder):
     fresh.write_bytes(b"being written")
     _program_cache.call(_program, _model(), jnp.arange(4.0), scale=2.0)
     assert not stale.exists() and fresh.exists()
+
+
+def test_a_program_that_cannot_be_exported_runs_as_the_jitted_call(folder, monkeypatch):
+    def fail(*_, **__):
+        raise RuntimeError("custom call not on the export allowlist")
+
+    monkeypatch.setattr(jax.export, "export", fail)
+    x = jnp.arange(4.0)
+    got = _program_cache.call(_program, _model(), x, scale=2.0)
+    np.testing.assert_array_equal(got["y"], _program(_model(), x, scale=2.0)["y"])
+    assert _saved(folder) == []
