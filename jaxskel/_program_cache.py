@@ -14,8 +14,8 @@ in both processes, so the compilation cache finds its compiled code too. ``key``
 SHA-256 over everything that decides the traced program:
 
 * the source of every module of this package (any edit gives new keys),
-* the versions of jax and of the libraries traced into the programs (jaxlib,
-  optimistix, equinox, lineax, numpy), the backend, the x64 flag,
+* the versions of the libraries traced into the programs (jax, jaxlib, optimistix,
+  equinox, lineax, numpy), the backend, the x64 flag,
 * the function's module and name, its static keyword arguments (``repr``), the
   argument tree (``str`` of the treedef: container types, equinox fields and their
   static values) and every leaf's type (dtype, shape, weak type).
@@ -33,13 +33,15 @@ import functools
 import hashlib
 import logging
 import os
-import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 import jax
+
+from ._atomic import atomic_output
+from ._errors import InputError
 
 __all__ = ["call", "set_directory"]
 
@@ -73,8 +75,8 @@ def _supported() -> bool:
     return hasattr(jax, "export") and hasattr(jax, "typeof")
 
 
-#: Libraries whose code is traced into the programs besides jax (their versions are keyed).
-_TRACED_LIBRARIES = ("jaxlib", "optimistix", "equinox", "lineax", "numpy")
+#: Libraries whose code is traced into the programs (their versions are keyed).
+_TRACED_LIBRARIES = ("jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy")
 
 
 @functools.lru_cache(maxsize=1)
@@ -125,7 +127,7 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
     name = getattr(fn, "__name__", "program")
     key = hashlib.sha256(
         repr((
-            _source_digest(), jax.__version__, jax.default_backend(),
+            _source_digest(), jax.default_backend(),
             bool(jax.config.jax_enable_x64), getattr(fn, "__module__", ""), getattr(fn, "__qualname__", name),
             sorted((k, repr(v)) for k, v in static.items()), str(treedef), [str(t) for t in types],
         )).encode()
@@ -167,20 +169,14 @@ def _load(path: Path) -> Any:
 
 
 def _save(path: Path, data: bytes | bytearray) -> None:
-    """Write atomically (a temporary file renamed into place), then prune the folder."""
+    """Write atomically (jaxskel's :func:`~jaxskel._atomic.atomic_output`: a hidden
+    temporary ``.<name>.<random>.tmp`` renamed into place), then prune the folder."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
-        try:
-            os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide it from the other users of a shared cache
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_output(path, overwrite=True, suffix="") as tmp:
+            tmp.write_bytes(data)
         _prune(path.parent)
-    except OSError as exc:  # read-only or full disk: run on without saving
+    except (OSError, InputError) as exc:  # read-only or full disk: run on without saving
         _log.debug("program %s not saved: %s", path.name, exc)
 
 
@@ -193,7 +189,7 @@ def _prune(folder: Path) -> None:
         except OSError:
             continue
         entries.append((st.st_mtime, st.st_size, p))
-    for p in folder.glob(f"*{_SUFFIX}*.tmp"):  # left by a process killed while writing
+    for p in folder.glob(f".*{_SUFFIX}.*.tmp"):  # left by a process killed while writing
         try:
             if time.time() - p.stat().st_mtime > 3600:
                 p.unlink()

@@ -191,10 +191,10 @@ def test_key_follows_the_traced_libraries_versions(monkeypatch):
 
 
 def test_stale_temporary_files_are_cleared(folder):
-    stale = folder / "_program-0.jaxexportab12.tmp"
+    stale = folder / "._program-0.jaxexport.ab12.tmp"  # atomic_output's temporary name
     stale.write_bytes(b"half a program")
     os.utime(stale, (1, 1))
-    fresh = folder / "_program-1.jaxexportcd34.tmp"  # perhaps another process writing now
+    fresh = folder / "._program-1.jaxexport.cd34.tmp"  # perhaps another process writing now
     fresh.write_bytes(b"being written")
     _program_cache.call(_program, _model(), jnp.arange(4.0), scale=2.0)
     assert not stale.exists() and fresh.exists()
