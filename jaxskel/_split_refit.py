@@ -20,7 +20,9 @@ bd), so the count grows only where a segment holds **two or more** flagged marke
 2. keep the new fit only if its rigid skeleton flags fewer markers *and* it leaves no
    more single-marker segments (a marker peeled off alone is always "rigid", and its
    joint is often untestable);
-3. repeat, at most :data:`MAX_SPLITS` times.
+3. while the kept fit still has a segment with two or more flagged markers, try the
+   next count (one more than the last one *tried*, kept or not), at most
+   :data:`MAX_SPLITS` counts in all.
 
 Warnings of the fits that are discarded are dropped; those of the kept one are
 re-emitted. A given ``n_segments`` is never changed.
@@ -86,25 +88,30 @@ def fit_growing_count(
     with warnings.catch_warnings(record=True) as caught:
         result = first(no_ik)
     kept_warnings = list(caught)
+    base = result.segmentation
+    n = base.n_segments
     for _ in range(MAX_SPLITS if growable else 0):
+        # Each count is tried even when the one before was not kept: one more segment
+        # can cut a joined group where it is not the pair the rigid fit flagged, and
+        # the next count then cuts the flagged pair too (a random 10-segment tree, seed
+        # 10: 8 -> 9 flags as many markers as before, 10 none).
         crowded = crowded_nonrigid(result.skeleton)
-        seg = result.segmentation
-        n = seg.n_segments + 1
-        if not crowded or n > min(seg.max_segments, result.trial.n_markers):
+        n += 1
+        if not crowded or n > min(base.max_segments, result.trial.n_markers):
             break
+        seg = result.segmentation
         with no_ik.stage("split", on_stage):
             grown = segment_markers(result.trial, n, seed=seed, **(segment_kwargs or {}))
         grown = dataclasses.replace(
             grown, count_rule="split", eigengap_segments=seg.eigengap_segments, rigid_limit=seg.rigid_limit,
-            split_from=seg.split_from or seg.n_segments, split_markers=seg.split_markers + crowded,
+            split_from=seg.split_from or base.n_segments, split_markers=seg.split_markers + crowded,
         )
         with warnings.catch_warnings(record=True) as caught:
             candidate = refit(dataclasses.replace(no_ik, trial=result.trial, segmentation=grown))
         if candidate.skeleton is None:
-            break
+            continue
         fewer = len(candidate.skeleton.nonrigid_markers) < len(result.skeleton.nonrigid_markers)
-        if not (fewer and _singletons(grown.marker_segment) <= _singletons(seg.marker_segment)):
-            break
-        result, kept_warnings = candidate, list(caught)
+        if fewer and _singletons(grown.marker_segment) <= _singletons(base.marker_segment):
+            result, kept_warnings = candidate, list(caught)
     _replay(kept_warnings, stacklevel + 1)
     return add_motion(prep, dataclasses.replace(result, settings=settings))

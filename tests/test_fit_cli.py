@@ -102,6 +102,28 @@ def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, li
     assert list(back.diagnostics.cleaning.duplicate_of) == [trial.labels[0]]
 
 
+def test_a_count_that_does_not_help_does_not_end_the_split_search():
+    """A random 10-segment tree where the eigengap (8) joins two pairs of segments, each
+    joint moving its markers little. One more segment cuts one pair but leaves the other
+    (as many flagged markers as before, so 9 is not kept); the search goes on to 10, which
+    flags nothing: the true tree, no warning. (Before, the search stopped at 9 and kept 8
+    groups with a wrong tree.)"""
+    from helpers import segment_map
+
+    trial, truth = synth.simulate(synth.random_tree(10, seed=10), duration=20.0, seed=10, noise=0.001, gaps=2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(trial, ik=False)
+    seg = result.segmentation
+    assert (seg.count_rule, seg.eigengap_segments, seg.split_from, result.n_segments) == ("split", 8, 8, 10)
+    assert result.skeleton.nonrigid_markers == ()
+    assert not [w for w in caught if issubclass(w.category, jaxskel.NonRigidMarkerWarning)]
+    named = segment_map(result, trial, truth)
+    assert sorted(named.values()) == list(range(10))
+    fitted = {frozenset((named[int(p)], named[int(c)])) for p, c in result.edges}
+    assert fitted == {frozenset(map(int, e)) for e in truth.edges}
+
+
 def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     """A random 12-segment tree whose joint 9-10 moves its markers little against each
     other (largest distance std 7 mm, 5x the 1.4 mm noise floor but under the 9 mm

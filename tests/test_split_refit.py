@@ -166,5 +166,32 @@ def test_a_split_that_leaves_a_marker_alone_is_discarded():
     out = fit_growing_count(
         prep, lambda p: _result(p, p.segmentation, group), refit, lambda p, r: r, seed=0, segment_kwargs=None
     )
-    assert len(grown) == 1 and 1 in np.bincount(grown[0].marker_segment)
+    # 4 and 5 groups of 9 markers: each leaves a marker alone, neither is kept
+    assert [g.n_segments for g in grown] == [3 + k for k in range(1, MAX_SPLITS + 1)]
+    assert all(1 in np.bincount(g.marker_segment) for g in grown)
     assert out.segmentation is prep.segmentation
+
+
+def test_a_count_not_kept_does_not_end_the_search(trial):
+    """One more segment flags as many markers as before (not kept); the count after it
+    flags fewer and is kept: the counts tried are counted from the last one tried."""
+    prep = _prep(trial)
+    m0 = prep.segmentation.n_segments
+    group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
+    calls = []
+
+    def refit(p):
+        calls.append(p.segmentation.n_segments)
+        warnings.warn(f"refit {p.segmentation.n_segments}", _Note)
+        return _result(p, p.segmentation, group if len(calls) == 1 else ())
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fit_growing_count(
+            prep, lambda p: _result(p, p.segmentation, group), refit, lambda p, r: r, seed=0,
+            segment_kwargs={"mend": False},  # mended, 13 groups leave a marker alone (test above)
+        )
+    assert calls == [m0 + 1, m0 + 2]
+    seg = out.segmentation
+    assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 2)
+    assert [str(w.message) for w in caught] == [f"refit {m0 + 2}"]
