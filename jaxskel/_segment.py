@@ -142,7 +142,8 @@ class Segmentation:
         (i, j) marker pairs never seen together often enough to estimate A.
     count_rule
         How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper),
-        ``"rigid"`` (grown from the eigengap's count until every group is rigid), or
+        ``"rigid"`` (grown from the eigengap's count until every group is rigid; 1 when
+        every pair of markers is rigid, a recording that exercises no joint), or
         ``"split"`` (grown past ``split_from`` after the rigid skeleton could not hold
         ``split_markers`` on their segments: :func:`jaxskel.fit_skeleton`).
     max_segments
@@ -429,7 +430,9 @@ def segment_markers(
         With ``n_segments=None``: the count grows from the eigengap's choice until no
         group holds two markers with ``A_ij > rigid_ratio * sigma`` (kept at the
         eigengap's choice when no count up to ``max_segments`` achieves that, or when
-        the first that does leaves more single-marker groups).
+        the first that does leaves more single-marker groups). When every pair of
+        markers is within that limit the count is 1 (one rigid body: the motion
+        exercises no joint, and :func:`jaxskel.fit_skeleton` says so).
         ``None``: the eigengap alone (the paper).
     mend
         Move markers that are plainly in the wrong group out of each sampling's spectral
@@ -516,6 +519,12 @@ def segment_markers(
     rigid_count = 0
     if n_segments is not None:
         rule, (labels, scores, best) = "given", cluster(n_segments)
+    elif rigid_ratio is not None and np.nanmax(a_observed) <= limit:
+        # Every marker keeps its distance to every other: one rigid body, and the
+        # eigengap (k >= 2) would split it anywhere (a static trial: flat spectrum,
+        # two arbitrary halves and no feasible joint between them).
+        labels, scores, best = np.zeros(m, dtype=int), [_score(np.zeros(m, dtype=int), a_observed)], 0
+        rule = "rigid"
     else:
         rule, (labels, scores, best) = "eigengap", cluster(gap_choice)
         if _least_rigidity(labels, a_observed) > limit:

@@ -359,6 +359,13 @@ def all_pairs_problem(
         raise InputError(f"weight must be one of {PAIR_WEIGHTS}, got {weight!r}")
     s = segmentation.n_segments
     if s < 2:
+        if segmentation.count_rule == "rigid":
+            raise DegenerateMotionError(
+                f"all {trial.n_markers} markers move as one rigid body (largest distance std "
+                f"{np.nanmax(segmentation.distance_std) * 1000:.1f} mm, under the rigidity limit "
+                f"{segmentation.rigid_limit * 1000:.1f} mm): the recording exercises no joint. Fit a trial in "
+                "which the joints move (e.g. a range-of-motion trial), or give n_segments"
+            )
         raise DegenerateMotionError("only one segment: there is no joint to fit")
     n_frames = trial.n_frames
     stride = max(1, int(np.ceil(n_frames / max_frames)))
@@ -604,6 +611,14 @@ def tree_problem(
         raise InputError(f"root segment {root} out of range for {s} segments")
     sizes = np.bincount(seg[seg >= 0], minlength=s)
     undirected = mst_edges(pair_costs.cost)
+    if not len(undirected):
+        shown = "; ".join(list(pair_costs.reasons.values())[:3])
+        more = len(pair_costs.reasons) - 3
+        raise DegenerateMotionError(
+            f"no pair of the {s} segments can be jointed: {shown}"
+            + (f" (and {more} more, topology.pair_costs.reasons)" if more > 0 else "")
+            + ". Fit a trial in which the joints move, or check the segmentation (n_segments)"
+        )
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
     if len(roots) > 1:
         warnings.warn(

@@ -207,3 +207,41 @@ def test_bad_segment_counts():
     for bad in (0.0, -1.0, "3"):
         with pytest.raises(jaxskel.InputError, match="rigid_ratio"):
             jaxskel.segment_markers(trial, rigid_ratio=bad)
+
+
+def _standing_still(seconds=6.0, noise=0.002):
+    """The full body held in its first pose (a static trial): only marker noise moves."""
+    trial, _ = synth.simulate(synth.full_body(seed=0), duration=seconds, seed=0, noise=0.0)
+    x = np.asarray(trial.positions)
+    still = np.repeat(x[:1], len(x), axis=0) + np.random.default_rng(1).normal(0.0, noise, x.shape)
+    return trial.replace(positions=still)
+
+
+def test_a_recording_that_moves_no_joint_is_one_segment_and_the_fit_says_why(tmp_path, capsys):
+    """Standing still, every marker keeps its distances (3 mm std from 2 mm noise, under
+    the rigidity limit): one rigid body. The eigengap alone (k >= 2) split it into two
+    arbitrary halves with no feasible joint, and the fit returned "2 segments, 0 joints"
+    with only a forest warning; now the count is 1 and the fit raises a typed error that
+    says the recording exercises no joint. Moving, the same body is 15 segments."""
+    still = _standing_still()
+    seg = jaxskel.segment_markers(still)
+    assert (seg.n_segments, seg.count_rule) == (1, "rigid")
+    assert np.nanmax(seg.distance_std) <= seg.rigid_limit
+    with pytest.raises(jaxskel.DegenerateMotionError, match="one rigid body.*exercises no joint"):
+        jaxskel.fit_skeleton(still)
+    # the paper's eigengap alone still splits it, and no pair can then be jointed: said so
+    assert jaxskel.segment_markers(still, rigid_ratio=None).n_segments >= 2
+    with pytest.raises(jaxskel.DegenerateMotionError, match="can be jointed.*not exercised"):
+        jaxskel.fit_skeleton(still, segment_kwargs={"rigid_ratio": None})
+    # a given count is the user's: kept
+    assert jaxskel.segment_markers(still, 3).n_segments == 3
+    moving, _ = synth.simulate(synth.full_body(seed=0), duration=6.0, seed=0, noise=0.002)
+    assert jaxskel.segment_markers(moving).n_segments == 15
+    # the command line: one line on stderr, exit status 2, no result file
+    from jaxskel._cli import main
+
+    src = jaxskel.save_trial(still, tmp_path / "still.h5")
+    assert main(["fit", str(src), "-o", str(tmp_path / "out.h5"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxskel: error:") and "exercises no joint" in err and "Traceback" not in err
+    assert not (tmp_path / "out.h5").exists()
