@@ -616,7 +616,7 @@ def tree_problem(
         more = len(pair_costs.reasons) - 3
         raise DegenerateMotionError(
             f"no pair of the {s} segments can be jointed: {shown}"
-            + (f" (and {more} more, topology.pair_costs.reasons)" if more > 0 else "")
+            + (f" (and {more} more pairs)" if more > 0 else "")
             + ". Fit a trial in which the joints move, or check the segmentation (n_segments)"
         )
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)

@@ -151,12 +151,18 @@ def test_cmu_legs_with_automatic_segment_count():
 
 
 def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
-    """Hamner's static trial (subject standing, 2.5 s): whatever the segments, their joints
-    barely turn, so the fit warns, reports the sweep, and does not move the centres (the
-    anchored refit moved one 1023 mm before it checked the sweep)."""
+    """Hamner's static trial (subject standing, 2.5 s): every marker pair keeps its
+    distance (largest std 4.3 mm, under the 9 mm rigidity limit), so the automatic count is
+    one rigid body and the fit says the recording exercises no joint (before, the eigengap
+    cut it in two and the fit returned one joint that turns 0.1 degrees, with a warning).
+    Given a count, whatever the segments, their joints barely turn, so the fit warns,
+    reports the sweep, and does not move the centres (the anchored refit moved one 1023 mm
+    before it checked the sweep)."""
     trial = jaxskel.load(DATA / "opensim_models" / "Hamner" / "subject02_static.trc")
+    with pytest.raises(jaxskel.DegenerateMotionError, match="49 markers move as one rigid body"):
+        jaxskel.fit_skeleton(trial, ik=False)
     with pytest.warns(jaxskel.DegenerateMotionWarning, match="barely move"):
-        result = jaxskel.fit_skeleton(trial, ik=False)
+        result = jaxskel.fit_skeleton(trial, n_segments=2, ik=False)
     report = result.skeleton.diagnostics["anchored"]
     assert len(result.edges) >= 1 and np.all(report["exercise"] < 1.0), report["exercise"]
     assert not report["moved"].any()
