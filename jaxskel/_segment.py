@@ -517,14 +517,15 @@ def segment_markers(
 
     limit = float(rigid_ratio) * sig if rigid_ratio is not None else np.inf
     rigid_count = 0
+    one_group = np.zeros(m, dtype=int)
     if n_segments is not None:
         rule, (labels, scores, best) = "given", cluster(n_segments)
-    elif rigid_ratio is not None and np.nanmax(a_observed) <= limit:
-        # Every marker keeps its distance to every other: one rigid body, and the
-        # eigengap (k >= 2) would split it anywhere (a static trial: flat spectrum,
-        # two arbitrary halves and no feasible joint between them).
-        labels, scores, best = np.zeros(m, dtype=int), [_score(np.zeros(m, dtype=int), a_observed)], 0
-        rule = "rigid"
+    elif rigid_ratio is not None and _least_rigidity(one_group, a_observed) <= limit:
+        # Every marker keeps its distance to every other (the growth's test below, on
+        # all markers as one group): one rigid body, and the eigengap (k >= 2) would
+        # split it anywhere (a static trial: flat spectrum, two arbitrary halves and no
+        # feasible joint between them).
+        rule, labels, scores, best = "rigid", one_group, [_score(one_group, a_observed)], 0
     else:
         rule, (labels, scores, best) = "eigengap", cluster(gap_choice)
         if _least_rigidity(labels, a_observed) > limit:

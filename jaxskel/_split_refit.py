@@ -99,12 +99,12 @@ def fit_growing_count(
         n += 1
         if not crowded or n > min(base.max_segments, result.trial.n_markers):
             break
-        seg = result.segmentation
         with no_ik.stage("split", on_stage):
             grown = segment_markers(result.trial, n, seed=seed, **(segment_kwargs or {}))
         grown = dataclasses.replace(
-            grown, count_rule="split", eigengap_segments=seg.eigengap_segments, rigid_limit=seg.rigid_limit,
-            split_from=seg.split_from or base.n_segments, split_markers=seg.split_markers + crowded,
+            grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
+            split_from=base.split_from or base.n_segments,
+            split_markers=result.segmentation.split_markers + crowded,
         )
         with warnings.catch_warnings(record=True) as caught:
             candidate = refit(dataclasses.replace(no_ik, trial=result.trial, segmentation=grown))
