@@ -223,7 +223,10 @@ class SkeletonResult:
             "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
             f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
         }[seg.count_rule]
-        lines.append(f"segment count: {rule}; largest eigengaps after k = {gaps}")
+        lines.append(
+            f"segment count: {rule}; largest eigengaps after k = {gaps}; "
+            f"white noise {1e3 * seg.white_noise:.2f} mm (taken out of A)"
+        )
         groups = _nonrigid_group_texts(seg, self.segment_names)
         if groups:
             lines += [f"  {text}" for text in groups] + [f"  {_nonrigid_group_hint(seg)}"]

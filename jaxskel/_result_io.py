@@ -11,7 +11,7 @@ Schema version 1 (documented in the README, "Result file"):
 * ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
   ``split_markers`` (the flagged markers that grew the count, see :mod:`jaxskel._split_refit`);
   attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / split), ``max_segments``,
-  ``rigid_limit`` (metres), ``sigma``, ``split_from`` (the automatic count before it grew, 0 if it did not),
+  ``rigid_limit`` (metres), ``sigma``, ``white_noise`` (metres), ``split_from`` (the automatic count before it grew, 0 if it did not),
   ``rigid_count`` (the first larger count with every group rigid, passed over for a lone marker; 0 if none);
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
   ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
@@ -135,6 +135,7 @@ def save_result(
             g.attrs["max_segments"] = seg.max_segments
             g.attrs["rigid_limit"] = seg.rigid_limit
             g.attrs["sigma"] = seg.sigma
+            g.attrs["white_noise"] = seg.white_noise
             g.attrs["split_from"] = seg.split_from
             g.attrs["rigid_count"] = seg.rigid_count
             _put(g, "split_markers", np.asarray(seg.split_markers, dtype=str))

@@ -42,6 +42,7 @@ def test_result_holds_every_stage(fitted, linkage_trial):
     assert k == r.segmentation.eigengap_segments == 3
     assert all(gap > g for _, g in others)
     assert f"segment count: eigengap; largest eigengaps after k = 3 ({gap:.3f})" in text
+    assert f"white noise {1e3 * r.segmentation.white_noise:.2f} mm (taken out of A)" in text
 
 
 def test_spectrum_plot_marks_the_count(fitted):
@@ -65,7 +66,9 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     seg_attrs = dict(back.segments.attrs)
     assert seg_attrs["count_rule"] == fitted.segmentation.count_rule == "eigengap"
     assert seg_attrs["max_segments"] == fitted.segmentation.max_segments
-    assert seg_attrs["rigid_limit"] == pytest.approx(3.0 * fitted.segmentation.sigma)
+    # the recording's 1 mm of white noise, and the limit restated on A as measured
+    assert seg_attrs["white_noise"] == fitted.segmentation.white_noise == pytest.approx(0.001, rel=0.05)
+    assert seg_attrs["rigid_limit"] == pytest.approx(np.hypot(3.0 * fitted.segmentation.sigma, np.sqrt(2) * seg_attrs["white_noise"]))
     assert (back.markers.segment >= 0).all() and back.markers.physical.tolist() == list(range(9))
     assert "joints_steps" in back.diagnostics.keys()
     # the rigid stage's diagnostics come back as JSON (they were once written as a repr)

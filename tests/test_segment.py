@@ -8,7 +8,7 @@ from helpers import linkage_with_a_bending_marker, partition, random_rotation, t
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._segment import _mend, _score, distance_std
+from jaxskel._segment import _mend, _score, distance_std, white_noise
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -49,6 +49,47 @@ def test_full_body_exact_segmentation_noise_soft_tissue_gaps(seed):
     # the spectrum shows the gap: eigenvalue n is clearly above eigenvalue n+1
     ev = seg.eigenvalues
     assert ev[n_true - 1] - ev[n_true] > 2 * (ev[n_true] - ev[n_true + 1])
+
+
+@pytest.mark.parametrize("rate", [60.0, 240.0])
+def test_white_noise_is_read_from_the_recording(rate):
+    """The 4th difference's robust scale gives the per-coordinate noise std the synthetic
+    recording was made with, whatever the rate, through gaps and jumps, and not the
+    motion (noiseless: < 0.01 mm); rotating the recording does not change it."""
+    body = synth.full_body(seed=3)
+    for noise in (0.0, 0.0005, 0.004):
+        trial, _ = synth.simulate(body, duration=10.0, rate=rate, seed=3, noise=noise, gaps=3, jumps=4)
+        assert white_noise(trial.positions) == pytest.approx(noise, rel=0.03, abs=1e-5)
+    moved = trial.transformed(random_rotation(3), np.array([1.0, 2.0, -3.0]))
+    assert white_noise(moved.positions) == pytest.approx(white_noise(trial.positions), rel=1e-9)
+    assert white_noise(trial.positions[:4]) == 0.0  # too few frames for a 4th difference
+    assert white_noise(np.full((50, 3, 3), np.nan)) == 0.0
+
+
+@pytest.mark.parametrize("seed", [5, 8])
+def test_high_white_noise_does_not_merge_segments(seed):
+    """4 mm of white noise per coordinate (and 2 mm soft tissue): within a segment A is
+    6 mm, across the wrists and ankles 6-33 mm (median 14-16). The affinity scale followed
+    the noise floor up to 11 mm, the eigengap chose 10 (seed 5) or 5 (seed 8) and the
+    rigidity limit, 34 mm, let the count stop at 11 and 10 with hand + forearm and foot +
+    shank as one segment each. With the noise taken out of A the scale is the 3 mm floor
+    and the grouping is exact. The result keeps A as measured, and its rigidity limit in
+    the same terms: no group of the exact grouping is above it."""
+    body = synth.full_body(seed=seed)
+    trial, truth = synth.simulate(body, duration=30.0, seed=seed, noise=0.004, soft_tissue=0.002, gaps=2)
+    cleaned, _ = jaxskel.clean(trial)
+    seg = jaxskel.segment_markers(cleaned)
+    assert seg.white_noise == pytest.approx(0.004, rel=0.03)
+    assert seg.n_segments == len(truth.segment_names)
+    keep = [trial.labels.index(lab) for lab in cleaned.labels]
+    assert partition(cleaned.labels, seg.marker_segment) == partition(cleaned.labels, truth.marker_segment[keep])
+    assert seg.sigma < 0.005
+    assert seg.rigid_limit == pytest.approx(np.hypot(3.0 * seg.sigma, np.sqrt(2.0) * seg.white_noise))
+    assert np.nanmin(seg.distance_std[~np.eye(cleaned.n_markers, dtype=bool)]) > 0.004  # as measured
+    assert seg.nonrigid_groups() == []
+    # The scale the raw floor gave (11 mm) is what went wrong: given it, the eigengap
+    # alone falls short of 15 on the same data.
+    assert jaxskel.segment_markers(cleaned, sigma=0.0113, rigid_ratio=None).n_segments < 15
 
 
 def test_invariant_to_rigid_motion_and_marker_order():
