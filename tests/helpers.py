@@ -62,3 +62,44 @@ def linkage_with_a_bending_marker():
     noise = np.random.default_rng(5).normal(0.0, 0.001, arm.shape)
     x[:, swing] = x[:, pivot] + 0.04 * arm + noise
     return trial.replace(positions=x)
+
+
+def markers_on_joints(truth, tol: float) -> dict[str, int]:
+    """Markers that move less than ``tol`` (RMS over frames, metres) in a neighbouring
+    segment's frame as well as not at all in their own (on a joint centre or near a hinge's
+    axis, like ``synth.full_body``'s elbow and knee markers): label -> that neighbour.
+    With ``tol`` the recording's noise, distances cannot say which of the two such a
+    marker belongs to; the noise-free poses of ``truth`` measure it."""
+    body = truth.body
+    rot, shift = np.asarray(truth.segment_rotations), np.asarray(truth.segment_translations)
+    out = {}
+    for i, (label, s) in enumerate(zip(body.marker_labels, body.marker_segment)):
+        world = np.einsum("fij,j->fi", rot[:, s], body.marker_offsets[i]) + shift[:, s]
+        for a, b in np.asarray(body.edges):
+            if s not in (a, b):
+                continue
+            other = int(b if a == s else a)
+            local = np.einsum("fji,fj->fi", rot[:, other], world - shift[:, other])
+            if np.sqrt(np.mean(np.sum((local - local.mean(0)) ** 2, axis=1))) < tol:
+                out[label] = other
+    return out
+
+
+def same_grouping_up_to_joint_markers(labels, groups, truth, tol: float) -> bool:
+    """Whether a fitted grouping is the true one, each marker of :func:`markers_on_joints`
+    allowed in either of its two segments (and nothing else allowed)."""
+    true_of = dict(zip(truth.body.marker_labels, truth.body.marker_segment))
+    either = markers_on_joints(truth, tol)
+    groups = np.asarray(groups)
+    fixed = {}  # fitted group -> the true segment of its unambiguous markers
+    for label, g in zip(labels, groups):
+        if label not in either:
+            fixed.setdefault(int(g), set()).add(int(true_of[label]))
+    if any(len(v) != 1 for v in fixed.values()):
+        return False
+    seg_of = {g: next(iter(v)) for g, v in fixed.items()}
+    if len(set(seg_of.values())) != len(seg_of) or len(seg_of) != int(groups.max()) + 1:
+        return False
+    return all(
+        seg_of.get(int(g)) in (int(true_of[label]), either[label]) for label, g in zip(labels, groups) if label in either
+    )
