@@ -77,6 +77,8 @@ def test_white_noise_is_read_from_the_recording(rate):
     assert white_noise(moved.positions) == pytest.approx(white_noise(trial.positions), rel=1e-9)
     assert white_noise(trial.positions[:4]) == 0.0  # too few frames for a 4th difference
     assert white_noise(np.full((50, 3, 3), np.nan)) == 0.0
+    with pytest.raises(jaxskel.InputError, match=r"shape \(T, M, 3\), got shape \(50, 6\)"):
+        white_noise(np.zeros((50, 6)))
 
 
 @pytest.mark.parametrize("seed", [5, 8])
