@@ -25,13 +25,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 
 import jaxskel
 from jaxskel import synth
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers import partition  # noqa: E402
 
 
 def _bodies(quick: bool) -> list[tuple[str, int, int]]:
@@ -42,12 +47,16 @@ def _bodies(quick: bool) -> list[tuple[str, int, int]]:
     return trees + bodies
 
 
-def _partition(labels, groups) -> set[frozenset]:
-    out: dict[int, set] = {}
-    for lab, g in zip(labels, groups):
-        if g >= 0:
-            out.setdefault(int(g), set()).add(lab)
-    return {frozenset(v) for v in out.values()}
+def fit_recorded(trial, truth):
+    """``fit_skeleton(trial, ik=False)`` with its warnings recorded and timed: (result,
+    warnings, seconds, the fitted labels, their true segments)."""
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(trial, ik=False)
+    seconds = time.perf_counter() - start
+    labels = list(result.trial.labels)
+    return result, caught, seconds, labels, truth.marker_segment[[trial.labels.index(lab) for lab in labels]]
 
 
 def run_one(kind: str, size: int, seed: int) -> dict:
@@ -57,20 +66,14 @@ def run_one(kind: str, size: int, seed: int) -> dict:
     else:
         body = synth.full_body(seed=seed, markers_per_segment=size)
         trial, truth = synth.simulate(body, duration=20.0, seed=seed, noise=0.002, gaps=2, soft_tissue=0.001)
-    start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = jaxskel.fit_skeleton(trial, ik=False)
-    seconds = time.perf_counter() - start
-    labels = list(result.trial.labels)
-    true_seg = truth.marker_segment[[trial.labels.index(lab) for lab in labels]]
+    result, caught, seconds, labels, true_seg = fit_recorded(trial, truth)
     fitted = result.segmentation.marker_segment
     named = {s: int(np.bincount(true_seg[fitted == s]).argmax()) for s in range(result.n_segments)}
     edges = {frozenset((named[int(a)], named[int(b)])) for a, b in result.edges}
     return {
         "body": kind, "size": size, "seed": seed, "segments": result.n_segments,
         "true_segments": len(truth.edges) + 1,
-        "seg": _partition(labels, fitted) == _partition(labels, true_seg),
+        "seg": partition(labels, fitted) == partition(labels, true_seg),
         "tree": edges == {frozenset(map(int, e)) for e in truth.edges},
         "count_rule": result.segmentation.count_rule,
         "split_from": result.segmentation.split_from,

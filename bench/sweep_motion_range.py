@@ -33,40 +33,27 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
-import warnings
+import sys
+from pathlib import Path
 
 import numpy as np
 
-import jaxskel
 from jaxskel import synth
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep_bodies, also under python -m
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers import markers_on_joints, partition  # noqa: E402
+from sweep_bodies import fit_recorded  # noqa: E402
 
 FRACTIONS = (1.0, 0.5, 0.3, 0.2, 0.1)
 NOISE, SOFT_TISSUE = 0.002, 0.001
-
-
-def _on_joint(truth, tol: float) -> dict[str, int]:
-    """Markers moving less than ``tol`` (RMS, m) in a neighbouring segment's frame ->
-    that neighbour (noise-free poses of the truth)."""
-    body = truth.body
-    rot, shift = np.asarray(truth.segment_rotations), np.asarray(truth.segment_translations)
-    out = {}
-    for i, (label, s) in enumerate(zip(body.marker_labels, body.marker_segment)):
-        world = np.einsum("fij,j->fi", rot[:, s], body.marker_offsets[i]) + shift[:, s]
-        for edge in np.asarray(body.edges):
-            if s in edge:
-                other = int(edge[1] if edge[0] == s else edge[0])
-                local = np.einsum("fji,fj->fi", rot[:, other], world - shift[:, other])
-                if np.sqrt(np.mean(np.sum((local - local.mean(0)) ** 2, axis=1))) < tol:
-                    out[label] = other
-    return out
 
 
 def _homes(labels, fitted, truth) -> dict[int, int] | None:
     """True segment -> the fitted group holding it, if every fitted group is a union of
     whole true segments (markers on joint centres allowed on either side); else None."""
     true_of = dict(zip(truth.body.marker_labels, truth.body.marker_segment))
-    either = _on_joint(truth, float(np.sqrt(3 * NOISE**2 + 3 * SOFT_TISSUE**2)))
+    either = markers_on_joints(truth, float(np.sqrt(3 * NOISE**2 + 3 * SOFT_TISSUE**2)))
     group_of_segment: dict[int, set] = {}
     for label, g in zip(labels, fitted):
         if label not in either:
@@ -88,13 +75,7 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
         body, motion, duration=30.0, seed=seed, noise=NOISE, soft_tissue=SOFT_TISSUE, gaps=2, joint_range=joint_range
     )
     excursion = [np.degrees(np.max(np.ptp(a, axis=0))) for a in truth.joint_angles]
-    start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = jaxskel.fit_skeleton(trial, ik=False)
-    seconds = time.perf_counter() - start
-    labels = list(result.trial.labels)
-    true_seg = truth.marker_segment[[trial.labels.index(lab) for lab in labels]]
+    result, caught, seconds, labels, true_seg = fit_recorded(trial, truth)
     fitted = result.segmentation.marker_segment
     home = _homes(labels, fitted, truth)
     # The truth's tree with the joined segments contracted: what a coarser fit should find.
@@ -102,17 +83,11 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
         frozenset(map(int, e)) for e in result.edges
     } == {frozenset((home[int(a)], home[int(b)])) for a, b in truth.edges if home[int(a)] != home[int(b)]}
 
-    def partition(groups):
-        out: dict[int, set] = {}
-        for lab, g in zip(labels, groups):
-            out.setdefault(int(g), set()).add(lab)
-        return {frozenset(v) for v in out.values()}
-
     return {
         "seed": seed, "motion": motion, "fraction": fraction,
         "range_deg": round(float(np.median(excursion)), 1),
         "segments": result.n_segments, "true_segments": len(truth.edges) + 1,
-        "seg": partition(fitted) == partition(true_seg),
+        "seg": partition(labels, fitted) == partition(labels, true_seg),
         "coarser": home is not None,
         "tree": contracted,
         "warnings": sorted({w.category.__name__ for w in caught}),
