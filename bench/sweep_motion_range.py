@@ -42,30 +42,11 @@ from jaxskel import synth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep_bodies, also under python -m
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers import markers_on_joints, partition  # noqa: E402
+from helpers import partition, whole_segment_homes  # noqa: E402
 from sweep_bodies import fit_recorded  # noqa: E402
 
 FRACTIONS = (1.0, 0.5, 0.3, 0.2, 0.1)
 NOISE, SOFT_TISSUE = 0.002, 0.001
-
-
-def _homes(labels, fitted, truth) -> dict[int, int] | None:
-    """True segment -> the fitted group holding it, if every fitted group is a union of
-    whole true segments (markers on joint centres allowed on either side); else None."""
-    true_of = dict(zip(truth.body.marker_labels, truth.body.marker_segment))
-    either = markers_on_joints(truth, float(np.sqrt(3 * NOISE**2 + 3 * SOFT_TISSUE**2)))
-    group_of_segment: dict[int, set] = {}
-    for label, g in zip(labels, fitted):
-        if label not in either:
-            group_of_segment.setdefault(int(true_of[label]), set()).add(int(g))
-    if any(len(v) > 1 for v in group_of_segment.values()):
-        return None  # a true segment's own markers in two groups
-    home = {s: next(iter(v)) for s, v in group_of_segment.items()}
-    placed = all(
-        int(g) in (home.get(int(true_of[label])), home.get(either[label])) for label, g in zip(labels, fitted)
-        if label in either
-    )
-    return home if placed else None
 
 
 def run_one(seed: int, motion: str, fraction: float) -> dict:
@@ -77,7 +58,7 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
     excursion = [np.degrees(np.max(np.ptp(a, axis=0))) for a in truth.joint_angles]
     result, caught, seconds, labels, true_seg = fit_recorded(trial, truth)
     fitted = result.segmentation.marker_segment
-    home = _homes(labels, fitted, truth)
+    home = whole_segment_homes(labels, fitted, truth, float(np.sqrt(3 * NOISE**2 + 3 * SOFT_TISSUE**2)))
     # The truth's tree with the joined segments contracted: what a coarser fit should find.
     contracted = home is not None and len(home) == len(truth.edges) + 1 and {
         frozenset(map(int, e)) for e in result.edges

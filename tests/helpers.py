@@ -85,21 +85,31 @@ def markers_on_joints(truth, tol: float) -> dict[str, int]:
     return out
 
 
-def same_grouping_up_to_joint_markers(labels, groups, truth, tol: float) -> bool:
-    """Whether a fitted grouping is the true one, each marker of :func:`markers_on_joints`
-    allowed in either of its two segments (and nothing else allowed)."""
+def whole_segment_homes(labels, groups, truth, tol: float) -> dict[int, int] | None:
+    """True segment -> the fitted group holding it, if every fitted group is a union of
+    whole true segments (the exact grouping or a coarser one), each marker of
+    :func:`markers_on_joints` at ``tol`` allowed in the group of either of its two
+    segments; ``None`` when a true segment is split or such a marker sits anywhere else."""
     true_of = dict(zip(truth.body.marker_labels, truth.body.marker_segment))
     either = markers_on_joints(truth, tol)
-    groups = np.asarray(groups)
-    fixed = {}  # fitted group -> the true segment of its unambiguous markers
+    group_of_segment: dict[int, set] = {}
     for label, g in zip(labels, groups):
         if label not in either:
-            fixed.setdefault(int(g), set()).add(int(true_of[label]))
-    if any(len(v) != 1 for v in fixed.values()):
-        return False
-    seg_of = {g: next(iter(v)) for g, v in fixed.items()}
-    if len(set(seg_of.values())) != len(seg_of) or len(seg_of) != int(groups.max()) + 1:
-        return False
-    return all(
-        seg_of.get(int(g)) in (int(true_of[label]), either[label]) for label, g in zip(labels, groups) if label in either
+            group_of_segment.setdefault(int(true_of[label]), set()).add(int(g))
+    if any(len(v) > 1 for v in group_of_segment.values()):
+        return None  # a true segment's own markers in two groups
+    home = {s: next(iter(v)) for s, v in group_of_segment.items()}
+    placed = all(
+        int(g) in (home.get(int(true_of[label])), home.get(either[label]))
+        for label, g in zip(labels, groups)
+        if label in either
     )
+    return home if placed else None
+
+
+def same_grouping_up_to_joint_markers(labels, groups, truth, tol: float) -> bool:
+    """Whether a fitted grouping is the true one, each marker of :func:`markers_on_joints`
+    allowed in either of its two segments (and nothing else allowed): every true segment
+    whole in a group of its own (:func:`whole_segment_homes`, one to one), and no other group."""
+    home = whole_segment_homes(labels, groups, truth, tol)
+    return home is not None and len(set(home.values())) == len(home) == int(np.max(groups)) + 1
