@@ -19,6 +19,7 @@ Usage::
     python bench/sweep_bodies.py                       # the table of the README (~8 min on 2 cores)
     python bench/sweep_bodies.py --quick               # 4 bodies
     python bench/sweep_bodies.py --json out.json
+    python bench/sweep_bodies.py --first-seed 4        # the same sizes, bodies never tuned on
 """
 
 from __future__ import annotations
@@ -39,11 +40,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers import partition  # noqa: E402
 
 
-def _bodies(quick: bool) -> list[tuple[str, int, int]]:
+def _bodies(quick: bool, first_seed: int = 0) -> list[tuple[str, int, int]]:
+    """The bodies of the table: seeds ``first_seed`` .. +3 of each tree size, +2 of each
+    full body (``first_seed`` > 0: bodies the defaults were never looked at on)."""
     if quick:
         return [("random_tree", 6, 0), ("random_tree", 12, 3), ("full_body", 2, 0), ("full_body", 3, 0)]
-    trees = [("random_tree", n, seed) for n in (4, 6, 8, 12, 16) for seed in range(4)]
-    bodies = [("full_body", k, seed) for k in (2, 3, 4) for seed in range(3)]
+    trees = [("random_tree", n, first_seed + i) for n in (4, 6, 8, 12, 16) for i in range(4)]
+    bodies = [("full_body", k, first_seed + i) for k in (2, 3, 4) for i in range(3)]
     return trees + bodies
 
 
@@ -87,10 +90,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds first_seed.. instead of 0.. (unseen bodies)")
     args = parser.parse_args()
     rows = []
     print(f"{'body':>12} {'size':>4} {'seed':>4} {'segs':>9} {'seg':>5} {'tree':>5}  warnings / flagged markers")
-    for kind, size, seed in _bodies(args.quick):
+    for kind, size, seed in _bodies(args.quick, args.first_seed):
         row = run_one(kind, size, seed)
         rows.append(row)
         note = ", ".join(row["warnings"]) + (f" {row['flagged']}" if row["flagged"] else "")
