@@ -42,7 +42,7 @@ from jaxskel import synth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # sweep_bodies, also under python -m
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers import partition, whole_segment_homes  # noqa: E402
+from helpers import marker_artefact, partition, whole_segment_homes  # noqa: E402
 from sweep_bodies import fit_recorded  # noqa: E402
 
 FRACTIONS = (1.0, 0.5, 0.3, 0.2, 0.1)
@@ -58,7 +58,7 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
     excursion = [np.degrees(np.max(np.ptp(a, axis=0))) for a in truth.joint_angles]
     result, caught, seconds, labels, true_seg = fit_recorded(trial, truth)
     fitted = result.segmentation.marker_segment
-    home = whole_segment_homes(labels, fitted, truth, float(np.sqrt(3 * NOISE**2 + 3 * SOFT_TISSUE**2)))
+    home = whole_segment_homes(labels, fitted, truth, marker_artefact(NOISE, SOFT_TISSUE))
     # The truth's tree with the joined segments contracted: what a coarser fit should find.
     contracted = home is not None and len(home) == len(truth.edges) + 1 and {
         frozenset(map(int, e)) for e in result.edges

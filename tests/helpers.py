@@ -64,6 +64,12 @@ def linkage_with_a_bending_marker():
     return trial.replace(positions=x)
 
 
+def marker_artefact(noise: float, soft_tissue: float) -> float:
+    """RMS 3-D length (metres) of one marker's artefact in ``synth.simulate``: white noise
+    of std ``noise`` per coordinate and skin motion of RMS length ``soft_tissue``."""
+    return float(np.sqrt(3 * noise**2 + soft_tissue**2))
+
+
 def markers_on_joints(truth, tol: float) -> dict[str, int]:
     """Markers that move less than ``tol`` (RMS over frames, metres) in a neighbouring
     segment's frame as well as not at all in their own (on a joint centre or near a hinge's

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from helpers import (
     linkage_with_a_bending_marker,
+    marker_artefact,
     markers_on_joints,
     partition,
     random_rotation,
@@ -56,7 +57,7 @@ def test_full_body_exact_segmentation_noise_soft_tissue_gaps(seed):
     seg = jaxskel.segment_markers(cleaned)
     n_true = len(truth.segment_names)
     assert seg.eigengap_segments == n_true
-    artefact = np.sqrt(3 * 0.002**2 + 0.003**2)
+    artefact = marker_artefact(0.002, 0.003)
     assert len(markers_on_joints(truth, artefact)) <= 2
     assert same_grouping_up_to_joint_markers(cleaned.labels, seg.marker_segment, truth, artefact)
     # the spectrum shows the gap: eigenvalue n is clearly above eigenvalue n+1
@@ -235,7 +236,8 @@ def test_a_rigid_count_that_leaves_a_marker_alone_is_reported_not_taken():
     seg = jaxskel.segment_markers(trial, sigma=0.006)
     assert (seg.count_rule, seg.eigengap_segments, seg.n_segments, seg.rigid_count) == ("eigengap", 3, 3, 4)
     ((_, first, second, std),) = seg.nonrigid_groups()
-    assert {first, second} == {"R3M1", "R3M3"} and std > seg.rigid_limit == pytest.approx(np.hypot(0.018, np.sqrt(2) * seg.white_noise))
+    assert {first, second} == {"R3M1", "R3M3"}
+    assert std > seg.rigid_limit == pytest.approx(np.hypot(0.018, np.sqrt(2) * seg.white_noise))
     four = jaxskel.segment_markers(trial, 4, sigma=0.006)
     assert four.nonrigid_groups() == [] and 1 in four.segment_sizes
     # nothing to report where the count is given, or the check is off
