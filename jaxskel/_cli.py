@@ -241,10 +241,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if args.bvh is not None:
         if result.motion is None:
             raise jaxskel.InputError("--bvh needs the rigid skeleton and IK; drop --no-rigid")
-        from ._bvh import export_bvh
-
-        export_bvh(result.skeleton, result.motion, args.bvh, rate=result.trial.rate,
-                   labels=result.segment_names, overwrite=args.overwrite)
+        result.export_bvh(args.bvh, overwrite=args.overwrite)
         written.append(args.bvh)
     if args.trc is not None:
         if result.motion is None:

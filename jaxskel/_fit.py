@@ -276,6 +276,45 @@ class SkeletonResult:
 
         save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
 
+    def export_bvh(
+        self,
+        path: str,
+        *,
+        trial: int | None = None,
+        overwrite: bool = False,
+        units: str = "m",
+        rotation_order: str = "ZXY",
+    ) -> Any:
+        """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.export_bvh`),
+        segments named by :attr:`segment_names`, at the recording's frame rate.
+
+        ``trial`` picks one input trial of a joint fit (its frames, ``trial_bounds``);
+        ``None`` writes every frame of the fitted recording, the trials one after another.
+        Returns the path written.
+        """
+        if self.skeleton is None or self.motion is None:
+            raise InputError(
+                "export_bvh needs the rigid skeleton and its motion; fit with rigid=True and ik=True (the defaults)"
+            )
+        motion = self.motion
+        if trial is not None:
+            n = len(self.trial_bounds)
+            if isinstance(trial, bool) or not isinstance(trial, (int, np.integer)) or not 0 <= trial < n:
+                raise InputError(f"trial must be an index 0..{n - 1} of the {n} fitted trial(s), got {trial!r}")
+            start, stop = self.trial_bounds[int(trial)]
+            frames = motion.n_frames
+            motion = dataclasses.replace(motion, **{
+                f.name: getattr(motion, f.name)[start:stop]
+                for f in dataclasses.fields(motion)
+                if isinstance(getattr(motion, f.name), np.ndarray) and getattr(motion, f.name).shape[:1] == (frames,)
+            })  # fmt: skip
+        from ._bvh import export_bvh
+
+        return export_bvh(
+            self.skeleton, motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
+            labels=self.segment_names, rotation_order=rotation_order,
+        )
+
 
 def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
     """A :class:`DegenerateMotionWarning` naming the joints the recording does not exercise."""

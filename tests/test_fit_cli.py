@@ -1,5 +1,6 @@
 """fit_skeleton end to end: result object, HDF5 result file, command line, errors."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -221,6 +222,13 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     assert "exists" in capsys.readouterr().err
     assert main(["fit", str(src), "-o", str(src), "--quiet", "--overwrite"]) == 2
     assert jaxskel.load(src).n_markers == trial.n_markers  # the input survived
+    bvh = tmp_path / "res.bvh"
+    assert main(["fit", str(src), "-o", str(tmp_path / "joints.h5"), "--bvh", str(bvh), "--quiet", "--no-rigid"]) == 2
+    assert "drop --no-rigid" in capsys.readouterr().err and not bvh.exists()
+    assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--quiet"]) == 0
+    data = jaxskel.read_bvh(bvh)
+    assert data.n_frames == trial.n_frames and len(data.names) == 3
+    assert data.frame_time == pytest.approx(1.0 / trial.rate)
 
 
 def test_cli_warnings_are_one_labelled_message(tmp_path, capsys):
@@ -262,12 +270,24 @@ def test_too_few_markers_and_bad_arguments(linkage_trial):
         jaxskel.fit_skeleton(trial, merge_labels="sometimes")
 
 
-def test_two_trials_fit_together(linkage_trial):
+def test_two_trials_fit_together_and_export_bvh_per_trial(linkage_trial, tmp_path):
     trial, truth = linkage_trial
     a, b = trial[: trial.n_frames // 2], trial[trial.n_frames // 2 :]
-    r = jaxskel.fit_skeleton([a, b], rigid=False, ik=False)
+    r = jaxskel.fit_skeleton([a, b])
     assert r.trial_bounds == ((0, a.n_frames), (a.n_frames, trial.n_frames))
     assert r.n_segments == 3 and len(r.edges) == 2
+    # BVH straight from the result: segment names, the recording's rate, one trial's frames.
+    second = jaxskel.read_bvh(r.export_bvh(tmp_path / "second.bvh", trial=1))
+    assert set(second.names) == set(r.segment_names)
+    assert second.n_frames == b.n_frames and second.frame_time == pytest.approx(1.0 / trial.rate)
+    root = second.names.index(r.segment_names[r.skeleton.root])
+    np.testing.assert_allclose(second.world_positions()[:, root], r.motion.root_position[a.n_frames :], atol=1e-6)
+    assert jaxskel.read_bvh(r.export_bvh(tmp_path / "all.bvh")).n_frames == trial.n_frames
+    with pytest.raises(jaxskel.InputError, match="trial must be an index 0..1"):
+        r.export_bvh(tmp_path / "third.bvh", trial=2)
+    with pytest.raises(jaxskel.InputError, match="rigid=True and ik=True"):
+        dataclasses.replace(r, motion=None).export_bvh(tmp_path / "none.bvh")
+    assert not (tmp_path / "third.bvh").exists() and not (tmp_path / "none.bvh").exists()
 
 
 def test_console_script_version():
