@@ -839,7 +839,7 @@ def solve_chunk(
     With ``horn`` each frame starts from :func:`_horn_start` and its prior is that
     start's relative rotations (``t0``, ``q0`` and ``prior`` are then ignored). Returns
     frame-major arrays: ``root_position`` (B, 3), ``rotations`` (B, S, 4), ``num_steps``,
-    ``done``, ``rms`` (B,), ``segment_translations`` (B, S, 3), ``joint_positions``
+    ``done``, ``rms`` (B,), ``energy`` (B,: markers plus prior, m^2), ``segment_translations`` (B, S, 3), ``joint_positions``
     (B, J, 3) and ``fitted`` (B, S, K, 3) (the model's slot layout).
     """
     order = model.order
@@ -873,6 +873,7 @@ def solve_chunk(
         num_steps=sol.num_steps,
         done=sol.done,
         rms=sol.rms,
+        energy=ev.energy,
         segment_translations=jnp.stack(ev.trans, axis=-1).transpose(1, 0, 2)[:, inverse],
         joint_positions=jnp.stack(ev.ref, axis=-1).transpose(1, 0, 2)[:, child_of_joint],
         fitted=jnp.stack(fitted, axis=-1).transpose(2, 0, 1, 3),
