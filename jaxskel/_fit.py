@@ -18,6 +18,7 @@ import functools
 import time
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -284,7 +285,7 @@ class SkeletonResult:
         overwrite: bool = False,
         units: str = "m",
         rotation_order: str = "ZXY",
-    ) -> Any:
+    ) -> Path:
         """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.export_bvh`),
         segments named by :attr:`segment_names`, at the recording's frame rate.
 

@@ -839,8 +839,9 @@ def solve_chunk(
     With ``horn`` each frame starts from :func:`_horn_start` and its prior is that
     start's relative rotations (``t0``, ``q0`` and ``prior`` are then ignored). Returns
     frame-major arrays: ``root_position`` (B, 3), ``rotations`` (B, S, 4), ``num_steps``,
-    ``done``, ``rms`` (B,), ``energy`` (B,: markers plus prior, m^2), ``segment_translations`` (B, S, 3), ``joint_positions``
-    (B, J, 3) and ``fitted`` (B, S, K, 3) (the model's slot layout).
+    ``done``, ``rms`` (B,), ``energy`` (B,: markers plus prior, what the solver
+    minimised), ``segment_translations`` (B, S, 3), ``joint_positions`` (B, J, 3) and
+    ``fitted`` (B, S, K, 3) (the model's slot layout).
     """
     order = model.order
     dtype = x.dtype
