@@ -4,7 +4,8 @@ Where ``sweep_bodies`` varies the body under one recording condition, this sweep
 recording: frame rate, duration, noise and soft tissue, marker jumps (swaps), ghost
 markers, passive labelling (a new label after every gap), the up axis, a rotated and
 shifted laboratory frame, a small subject, uneven marker counts (one marker on a hand),
-a walk alone and a walk fitted together with a calibration trial. Every case runs
+heavy occlusion (about 40 % of the samples seen), a walk alone and a walk fitted
+together with a calibration trial. Every case runs
 :func:`jaxskel.fit_skeleton` with its defaults (cleaning, label merging, segmentation,
 joints, rigid skeleton, IK), then writes and reads back the HDF5 result and a BVH file, and
 is judged on the truth (``jaxskel.synth``, seeds 30 and up):
@@ -22,7 +23,7 @@ is judged on the truth (``jaxskel.synth``, seeds 30 and up):
 
 Usage::
 
-    python bench/sweep_conditions.py                  # 12 recordings, ~6 min on 2 cores
+    python bench/sweep_conditions.py                  # 13 recordings, ~7 min on 2 cores
     python bench/sweep_conditions.py --only walk      # the cases whose name contains "walk"
     python bench/sweep_conditions.py --json out.json
 """
@@ -71,6 +72,8 @@ def _cases():
          [dict(duration=15.0, rate=100.0, seed=32, noise=0.001, soft_tissue=0.001, gaps=1)], None),
         ("body, rotated + shifted lab", fb(seed=33),
          [dict(duration=30.0, seed=33, noise=0.002, soft_tissue=0.001, gaps=2)], 33),
+        ("body, 41 % seen (14 gaps a marker)", fb(seed=36),
+         [dict(duration=30.0, seed=36, noise=0.002, gaps=14, gap_length=(0.5, 2.0))], None),
         ("body, walk alone", fb(seed=34), [dict(motion="walk", duration=30.0, seed=34, noise=0.002, gaps=2)], None),
         ("body, walk + calibration trial", fb(seed=34),
          [dict(motion="walk", duration=30.0, seed=34, noise=0.002, gaps=2),

@@ -390,6 +390,35 @@ def _untested_text(u: Any, names: Sequence[str], sizes: np.ndarray) -> str:
     )
 
 
+def _require_one_tree(topology: Topology, segmentation: Segmentation, names: Sequence[str]) -> None:
+    """Raise when the joint-cost graph left a forest: the rigid skeleton and IK need one tree.
+
+    Infeasible pairs (too few markers together, never seen together, a joint never
+    exercised) have infinite cost, so segments whose every pair is infeasible stay apart.
+    """
+    n_seg = segmentation.n_segments
+    if len(topology.edges) == n_seg - 1:
+        return
+    component = np.arange(n_seg)
+    for a, b in np.asarray(topology.edges):  # union of the tree's edges, smallest label wins
+        ca, cb = component[a], component[b]
+        component[component == max(ca, cb)] = min(ca, cb)
+    sizes = np.bincount(segmentation.marker_segment[segmentation.marker_segment >= 0], minlength=n_seg)
+    weight = np.bincount(component, weights=sizes, minlength=n_seg)
+    main = int(np.argmax(weight))
+    apart = [s for s in range(n_seg) if component[s] != main]
+    shown = ", ".join(f"{names[s]} ({int(sizes[s])} marker{'s' if sizes[s] != 1 else ''})" for s in apart[:8])
+    more = f" and {len(apart) - 8} more" if len(apart) > 8 else ""
+    reason = next((why for pair, why in topology.pair_costs.reasons.items() if set(pair) & set(apart)), "")
+    raise DegenerateMotionError(
+        f"no joint can be fitted between {len(apart)} of the {n_seg} segments and the rest, so there is "
+        f"no single skeleton tree: {shown}{more}. Their pairs are infeasible (e.g. {reason}; all in "
+        "topology.pair_costs.reasons). Fit with rigid=False to inspect the segmentation and joints, give "
+        "n_segments, drop markers that are seldom seen (Trial.drop_markers), or add frames in which they "
+        "are seen together with their neighbours"
+    )
+
+
 def _warn_untested(untested: list, names: Sequence[str], sizes: np.ndarray) -> None:
     """A :class:`DegenerateMotionWarning` naming attachments the joint costs could not test."""
     if untested:
@@ -773,6 +802,8 @@ def finish_fit(
 
     _warn_near_ties(near_ties(work, segmentation, topology), names)
     skeleton = None
+    if prep.settings.get("rigid", True) and len(topology.edges):
+        _require_one_tree(topology, segmentation, names)
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):
             from ._rigid import SOLVED_JOINT_WEIGHT, fit_rigid

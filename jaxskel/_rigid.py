@@ -71,7 +71,7 @@ from jaxtyping import Array, Float, Int
 from ._anderson import anderson_step
 from ._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from ._geometry import horn_align, quat_to_matrix
-from ._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
+from ._hinge_centres import MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, hinge_axes, hinge_shifts
 from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
     RESULT_MAX_STEPS,
@@ -162,7 +162,9 @@ class Skeleton:
         ``ik_failures``, ``procrustes_segments`` (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
         ``hinge_shift`` (per joint: how far it was moved along its axis into its limb
         plane, m, signed along ``hinge_axis``; 0 for joints not moved) and ``hinge_axis``
-        (per joint: that axis in the parent frame, NaN for joints not moved).
+        (per joint: that axis in the parent frame, NaN for joints not moved); when the
+        refined poses showed a moved joint turning about more than one axis, the fit is
+        redone without moving it and ``hinges_unmoved`` lists those joints.
     """
 
     n_segments: int
@@ -407,6 +409,20 @@ def _place_hinges(
         js[:, j] = np.where(jm[:, j, None], js[:, j] + shift[j] * world, js[:, j])
         axis_parent[j] = axes[j, 0]
     return shift, axis_parent, weights
+
+
+def _turns_as_hinge(
+    edges: np.ndarray, rot: np.ndarray, keep: np.ndarray, joints: np.ndarray, limit: float = MAX_OFF_AXIS
+) -> np.ndarray:
+    """(J,) whether each joint in ``joints`` turns as a hinge (off-axis share below
+    ``limit``, :func:`hinge_axes`) on the refined poses ``rot`` (F, S, 3, 3; segment ->
+    world) of the ``keep`` frames."""
+    to_local = np.swapaxes(rot[keep], -1, -2)  # world -> segment
+    out = np.zeros(edges.shape[0], bool)
+    for j in np.flatnonzero(joints):
+        p, c = int(edges[j, 0]), int(edges[j, 1])
+        out[j] = hinge_axes(to_local[:, p], to_local[:, c], np.ones(int(keep.sum())))[2] < limit
+    return out
 
 
 def _replace_hinges(
@@ -846,6 +862,21 @@ def fit_rigid(
     )
     rot = np.asarray(quat_to_matrix(sol["rotations"]))  # (F, S, 3, 3)
     if refine and np.isfinite(hinge_axis_local[:, 0]).any():
+        moved = np.isfinite(hinge_axis_local[:, 0])
+        rejected = moved & ~_turns_as_hinge(edges, rot, keep, moved, MAX_OFF_AXIS_REFINED)
+        if rejected.any():
+            # The slide's axis came from the frames Procrustes poses; the refined poses of
+            # all kept frames show the joint turning about more than one axis, so its
+            # markers pin the centre and the slide is wrong (MAX_OFF_AXIS_REFINED): fit
+            # again without it.
+            again = fit_rigid(
+                trial, marker_segment, edges, joint_positions, root=root, refine=refine, max_steps=max_steps,
+                max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames, prior_weight=prior_weight,
+                nonrigid_factor=nonrigid_factor, labels=labels, joint_weight=joint_weight,
+                sliding_joints=np.asarray(sliding_joints, dtype=bool) & ~rejected,
+            )
+            unmoved = sorted(set(again.diagnostics.get("hinges_unmoved", [])) | set(np.flatnonzero(rejected).tolist()))
+            return dataclasses.replace(again, diagnostics={**again.diagnostics, "hinges_unmoved": unmoved})
         # The refinement weighs the joint centres lightly, so a hinge may drift along its
         # axis again with the markers' soft tissue: place it once more on the final poses.
         m_th, j_th = np.array(m_th), np.array(j_th)

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ._errors import DegenerateMotionError
 from ._segment import _singletons, segment_markers
 
 __all__ = ["crowded_nonrigid", "fit_growing_count", "MAX_SPLITS"]
@@ -107,7 +108,10 @@ def fit_growing_count(
             split_markers=result.segmentation.split_markers + crowded,
         )
         with warnings.catch_warnings(record=True) as caught:
-            candidate = refit(dataclasses.replace(no_ik, trial=result.trial, segmentation=grown))
+            try:
+                candidate = refit(dataclasses.replace(no_ik, trial=result.trial, segmentation=grown))
+            except DegenerateMotionError:  # e.g. a split-off marker no joint can attach: not a candidate
+                continue
         if candidate.skeleton is None:
             continue
         fewer = len(candidate.skeleton.nonrigid_markers) < len(result.skeleton.nonrigid_markers)

@@ -270,6 +270,30 @@ def test_too_few_markers_and_bad_arguments(linkage_trial):
         jaxskel.fit_skeleton(trial, merge_labels="sometimes")
 
 
+def test_a_segment_no_joint_can_reach_is_named_not_a_crash(linkage_trial):
+    """The third rod is seen only while the other two are not: no joint can be fitted to
+    it, the joint-cost graph is a forest and there is no single skeleton tree. This
+    raised an InputError from inside the rigid fit ("edges refer to segments outside
+    0..1"); it is a typed error that names the segment and says what to do, and
+    ``rigid=False`` still returns the segmentation and the joints that can be fitted."""
+    trial, _ = linkage_trial
+    x = trial.positions.copy()
+    third = [i for i, label in enumerate(trial.labels) if label.startswith("R3")]
+    others = [i for i in range(trial.n_markers) if i not in third]
+    half = trial.n_frames // 2
+    x[:half, third] = np.nan
+    x[half:, others] = np.nan
+    apart = trial.replace(positions=x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the forest's own warning, label merging
+        with pytest.raises(jaxskel.DegenerateMotionError, match=r"1 of the 3 segments.*seg2 \(3 markers\).*rigid=False"):
+            jaxskel.fit_skeleton(apart, merge_labels=False)
+        partial = jaxskel.fit_skeleton(apart, merge_labels=False, rigid=False)
+    assert partial.n_segments == 3 and len(partial.edges) == 1 and partial.skeleton is None
+    rod = partial.segmentation.marker_segment[third]
+    assert len(set(rod.tolist())) == 1 and rod[0] not in partial.edges
+
+
 def test_two_trials_fit_together_and_export_bvh_per_trial(linkage_trial, tmp_path):
     trial, truth = linkage_trial
     a, b = trial[: trial.n_frames // 2], trial[trial.n_frames // 2 :]
