@@ -19,7 +19,9 @@ defaults (no IK) and judged on the truth:
 * ``tree``: the fitted tree is the true one with the joined segments contracted (the
   true tree when nothing is joined);
 * ``range``: the median over joints of each joint's largest excursion (degrees), so a
-  fraction reads as an amount of motion.
+  fraction reads as an amount of motion;
+* ``undet``: how many joints the fit names undetermined (:mod:`jaxskel._determination`:
+  centre fixed only to within more than 10 cm).
 
 Printed with the warnings of each fit, so a wrong answer that says nothing stands out.
 
@@ -72,6 +74,7 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
         "coarser": home is not None,
         "tree": contracted,
         "warnings": sorted({w.category.__name__ for w in caught}),
+        "undetermined": len(result.undetermined_joints()),
         "seconds": round(seconds, 1),
     }
 
@@ -79,17 +82,21 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--walk-seeds", type=int, nargs="*", default=[],
+                        help="more seeds for the walk alone (e.g. 3 4 5 6 7 15, the walks of docs/bench/motion_range.md)")
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
     cases = [(seed, "calibration", f) for f in FRACTIONS for seed in args.seeds]
-    cases += [(seed, "walk", 1.0) for seed in args.seeds]
+    cases += [(seed, "walk", 1.0) for seed in [*args.seeds, *args.walk_seeds]]
     rows = []
-    print(f"{'motion':>11} {'fraction':>8} {'range':>6} {'seed':>4} {'segs':>6} {'seg':>5} {'tree':>5} {'coarser':>7}  warnings")
+    print(f"{'motion':>11} {'fraction':>8} {'range':>6} {'seed':>4} {'segs':>6} {'seg':>5} {'tree':>5} {'coarser':>7} "
+          f"{'undet':>5}  warnings")
     for seed, motion, fraction in cases:
         row = run_one(seed, motion, fraction)
         rows.append(row)
         print(f"{motion:>11} {fraction:>8} {row['range_deg']:>6} {seed:>4} {row['segments']:>3}/{row['true_segments']:<2} "
-              f"{row['seg']!s:>5} {row['tree']!s:>5} {row['coarser']!s:>7}  {', '.join(row['warnings'])}", flush=True)
+              f"{row['seg']!s:>5} {row['tree']!s:>5} {row['coarser']!s:>7} {row['undetermined']:>5}  "
+              f"{', '.join(row['warnings'])}", flush=True)
     # exact: the true groups (up to markers on joint centres) and tree; coarser: whole
     # segments joined and the contracted tree; anything else is wrong
     exact = [r for r in rows if r["tree"] and r["segments"] == r["true_segments"]]

@@ -108,6 +108,12 @@ class AnchoredCentres:
     displacement, resolution
         (J, 3) ``m_k`` and ``r_k`` (metres) along the Hessian's eigenvectors, weakest
         first; a direction moved where ``|m_k| >= MIN_RESOLUTIONS r_k``. NaN: no anchor.
+    bone_cosines
+        (J, J, 3) ``|v_k . u|``: how much of eigenvector ``k`` of joint ``j``'s fit (same
+        order as ``resolution``) lies along the bone ``u`` from joint ``j`` to joint ``i``
+        on a segment they share (median over the anchor's posed frames, returned centres);
+        NaN where ``j`` has no anchor or ``i`` shares no segment with it. Row ``j``, column
+        ``i``. :mod:`jaxskel._determination` turns it into bone-length uncertainties.
     cost_per_frame, cost
         (J,) the fixed-centre cost ``C`` (m^2) at the per-frame centres' median and at
         the minimum.
@@ -126,6 +132,7 @@ class AnchoredCentres:
     cost: Float[np.ndarray, " J"]
     steps: Int[np.ndarray, " J"]
     result: Int[np.ndarray, " J"]
+    bone_cosines: Float[np.ndarray, "J J 3"]
 
 
 def _segment_poses(
@@ -343,6 +350,45 @@ def anchored_centres(
             centre = np.einsum("fji,fj->fi", rot, c[None] - t)
             out[:, j] = np.where(posed_all[:, anchor, None], centre, np.nan)
             moved[j], shift[j] = True, float(np.linalg.norm(c - c0[i]))
+        directions = {j: vec[i] for j, i in best.items()}
+        bone_cosines = _bone_cosines(out, edges, anchor_of, directions, rot_all, posed_all, n_sub)
+    else:
+        bone_cosines = np.full((n_joints, n_joints, 3), np.nan)
     return AnchoredCentres(
-        out, anchor_of, moved, shift, exercise, displacement, resolution, cost_per_frame, cost, steps, result
+        out, anchor_of, moved, shift, exercise, displacement, resolution, cost_per_frame, cost, steps, result,
+        bone_cosines,
     )
+
+
+def _bone_cosines(
+    centres: Float[np.ndarray, "F J 3"],
+    edges: Int[np.ndarray, "J 2"],
+    anchor: Int[np.ndarray, " J"],
+    directions: dict[int, Float[np.ndarray, "3 3"]],
+    rot: Float[np.ndarray, "F S 3 3"],
+    posed: Bool[np.ndarray, "F S"],
+    n_sub: int,
+) -> Float[np.ndarray, "J J 3"]:
+    """:attr:`AnchoredCentres.bone_cosines`: ``|v_k . u|`` for every joint ``j``'s Hessian
+    eigenvectors ``v_k`` (columns of ``directions[j]``, anchor frame) and unit bone ``u``
+    to each joint sharing a segment with ``j``, in the anchor's frame (``R u``), median over
+    at most ``n_sub`` evenly spaced frames where the anchor is posed and both centres exist.
+    A bone on the anchor keeps one direction in its frame; one on the other segment turns
+    with the joint, hence the median."""
+    n_joints = edges.shape[0]
+    out = np.full((n_joints, n_joints, 3), np.nan)
+    for j, vec in directions.items():
+        a = int(anchor[j])
+        for i in range(n_joints):
+            if i == j or not set(edges[i].tolist()) & set(edges[j].tolist()):
+                continue
+            bone = centres[:, i] - centres[:, j]
+            frames = np.flatnonzero(posed[:, a] & np.isfinite(bone).all(axis=1))
+            if frames.size == 0:
+                continue
+            frames = frames[np.unique(np.linspace(0, frames.size - 1, min(n_sub, frames.size)).astype(int))]
+            local = np.einsum("fab,fb->fa", rot[frames, a], bone[frames])
+            length = np.linalg.norm(local, axis=1, keepdims=True)
+            unit = local / np.maximum(length, 1e-12)
+            out[j, i] = np.median(np.abs(unit @ vec), axis=0)
+    return out

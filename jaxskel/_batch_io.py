@@ -52,7 +52,7 @@ __all__ = [
 #: requested bone specs, then ``bones`` (every bone, JSON, by marker labels).
 COLUMNS = (
     "name", "subject", "status", "error", "inputs", "output", "frames", "rate", "markers",
-    "segments", "joints", "root", "joints_converged", "joint_cost_median_mm2",
+    "segments", "joints", "root", "joints_converged", "undetermined", "joint_cost_median_mm2",
     "ik_rms_median_mm", "seconds",
 )
 #: Bumped when the completion record changes meaning (older records are refitted).
@@ -200,6 +200,7 @@ def summary_row(
         frames=result.trial.n_frames, rate=result.trial.rate, markers=result.trial.n_markers,
         segments=result.n_segments, joints=len(topo.edges), root=int(topo.root),
         joints_converged=f"{int(np.sum(topo.converged))}/{len(topo.edges)}",
+        undetermined=len(result.undetermined_joints()),  # joints fixed only to within > 10 cm
         joint_cost_median_mm2=_median_or_nan(topo.joint_cost, 1e6),
         ik_rms_median_mm=_median_or_nan(result.motion.marker_rms, 1e3) if result.motion is not None else math.nan,
         seconds=round(float(seconds), 2),
@@ -239,7 +240,8 @@ def read_summary(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
     for row in rows:
         for k, v in row.items():
             if k.startswith("bone:") or k in ("frames", "rate", "markers", "segments", "joints", "root",
-                                               "joint_cost_median_mm2", "ik_rms_median_mm", "seconds"):
+                                               "undetermined", "joint_cost_median_mm2", "ik_rms_median_mm",
+                                               "seconds"):
                 try:
                     row[k] = float(v) if v != "" else math.nan
                 except ValueError:

@@ -200,6 +200,41 @@ class SkeletonResult:
 
         return untested_joints(self.segmentation, self.topology)
 
+    def undetermined_joints(self) -> list:
+        """Tree joints whose centre the recording fixes only to within more than 10 cm
+        (:func:`jaxskel.undetermined_joints`); empty without the rigid skeleton."""
+        from ._determination import undetermined_joints
+
+        return undetermined_joints(self.skeleton) if self.skeleton is not None else []
+
+    def joint_resolutions(self) -> np.ndarray:
+        """(J,) metres: how far each joint centre can move along its least determined
+        direction before the fit's misfit doubles (:mod:`jaxskel._determination`); NaN
+        where unknown (no segment of the joint with three markers, no rigid skeleton)."""
+        from ._determination import joint_resolution
+
+        if self.skeleton is None:
+            return np.full(len(self.edges), np.nan)
+        return joint_resolution(self.skeleton)
+
+    def bone_uncertainties(self) -> dict[str, float]:
+        """How far each bone length of :meth:`bone_lengths` can move with its joints inside
+        their resolutions (metres, NaN where unknown; :func:`jaxskel.bone_uncertainty`).
+        Empty without the rigid skeleton."""
+        if self.skeleton is None:
+            return {}
+        from ._determination import bone_uncertainty
+
+        spread = bone_uncertainty(self.skeleton)
+        return {self._bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
+
+    def _bones_with_unknown_end(self) -> set[str]:
+        """Names of the bones one of whose joints has no resolution (NaN)."""
+        if self.skeleton is None:
+            return set()
+        unknown = ~np.isfinite(self.joint_resolutions())
+        return {self._bone_name(j0, j1) for j0, j1 in self.skeleton.bones if unknown[j0] or unknown[j1]}
+
     def near_ties(self, z: float = 2.0) -> list:
         """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
         the tree would joint instead (:func:`jaxskel.near_ties`)."""
@@ -240,14 +275,22 @@ class SkeletonResult:
 
         anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
         sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
-        lines.append("joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg]")
+        resolution = self.joint_resolutions()
+        undetermined = self.undetermined_joints()
+        loose = {u.joint for u in undetermined}
+        lines.append(
+            "joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"
+        )
         for j in range(len(self.edges)):
             t = self.topology
             lines.append(
                 f"  {self.joint_name(j):>17}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
-                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}"
+                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {_millimetres(resolution[j])}"
                 + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
+                + ("  undetermined" if j in loose else "")
             )
+        if undetermined:
+            lines.append(f"  {_undetermined_text(undetermined, self.joint_name)}")
         for u in self.untested_joints():
             lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
         for tie in self.near_ties():
@@ -257,9 +300,16 @@ class SkeletonResult:
             lines.append(f"  {nonrigid}")
         bones = self.bone_lengths()
         if bones:
-            lines.append("bone lengths [m]:")
+            spread = self.bone_uncertainties()
+            partial = self._bones_with_unknown_end()
+            lines.append(
+                "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; "
+                ">= where one joint's is unknown):"
+            )
             for name, length in bones.items():
-                lines.append(f"  {name}: {length:.4f}")
+                bound = ">=" if name in partial and np.isfinite(spread.get(name, np.nan)) else "  "
+                extra = f"  {bound}{_millimetres(spread[name])}" if name in spread else ""
+                lines.append(f"  {name}: {length:.4f}{extra}")
         if self.motion is not None:
             rms = np.asarray(self.motion.marker_rms)
             lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
@@ -328,6 +378,37 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
             f"other segment's markers about the joint, below {MIN_EXERCISE_DEG:g} deg); their centres "
             "are not determined by the motion and come from the distance prior. Fit the recording "
             "together with a range-of-motion trial (fit_skeleton([rom, trial]))",
+            DegenerateMotionWarning,
+            stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
+        )
+
+
+def _millimetres(length: float, unit: str = "") -> str:
+    """A length in metres as millimetres (7 wide, ``unit`` appended): ``n/a`` unknown,
+    ``> 10 m`` for a direction nothing fixes (the Hessian is flat along it)."""
+    if not np.isfinite(length):
+        return "    n/a"
+    return "  > 10 m" if length > 10.0 else f"{1000 * length:7.1f}{unit}"
+
+
+def _undetermined_text(loose: list, joint_name: Any) -> str:
+    """One line naming the :class:`jaxskel.UndeterminedJoint` s."""
+    from ._determination import UNDETERMINED_RESOLUTION
+
+    items = ", ".join(f"{joint_name(u.joint)} ({_millimetres(u.resolution, ' mm').strip()})" for u in loose)
+    return (
+        f"undetermined: {items}: the recording fixes these centres only to within more than "
+        f"{1000 * UNDETERMINED_RESOLUTION:.0f} mm (the distance along which the fit's misfit doubles), so "
+        "they and the bones ending at them are as uncertain. Where they matter, fit the recording together "
+        "with a range-of-motion trial of the same subject (several inputs to fit_skeleton or jaxskel fit)"
+    )
+
+
+def _warn_undetermined(loose: list, joint_name: Any) -> None:
+    """A :class:`DegenerateMotionWarning` naming the joints the recording fixes only loosely."""
+    if loose:
+        warnings.warn(
+            f"{len(loose)} joint(s) {_undetermined_text(loose, joint_name)}",
             DegenerateMotionWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
@@ -537,7 +618,9 @@ def fit_skeleton(
         hips next to four waist markers: CMU 02_05 left thigh +83 -> -2 mm, HDM05 dg
         right thigh +122 -> +7 mm against the ``.asf``), or ``"per_frame"``: the joint
         solve's free centre per frame (the paper). The refit is reported in
-        ``skeleton.diagnostics["anchored"]``.
+        ``skeleton.diagnostics["anchored"]``, and its resolutions say how well the
+        recording fixes each joint and bone (:meth:`SkeletonResult.joint_resolutions`,
+        :meth:`SkeletonResult.undetermined_joints`; ``"per_frame"`` has none, NaN).
     """
     if hinge_centres not in HINGE_CENTRES:
         raise InputError(f"hinge_centres must be one of {HINGE_CENTRES}, got {hinge_centres!r}")
@@ -827,7 +910,11 @@ def finish_fit(
             if anchored is not None:
                 report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
                 skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
-                _warn_unexercised(anchored.exercise, [f"{names[p]}-{names[c]}" for p, c in topology.edges])
+                joint_names = [f"{names[p]}-{names[c]}" for p, c in topology.edges]
+                _warn_unexercised(anchored.exercise, joint_names)
+                from ._determination import undetermined_joints
+
+                _warn_undetermined(undetermined_joints(skeleton), joint_names.__getitem__)
             nonrigid = _nonrigid_text(skeleton, names, segmentation.n_segments)
             if nonrigid is not None:
                 warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=4)

@@ -19,8 +19,10 @@ Schema version 1 (documented in the README, "Result file"):
   (n, 2) pairs with ``infeasible_reason`` (n,) str, ``untested``/``untested_std``, ``near_ties`` (t, 3)
   (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance);
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
-  ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded;
-* ``/skeleton`` and ``/motion`` (when fitted, see the README);
+  ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded, ``resolution`` (J,)
+  and ``undetermined`` (u,) joint indices (:mod:`jaxskel._determination`);
+* ``/skeleton`` (``bone_uncertainty`` (B,) beside ``bone_lengths``) and ``/motion`` (when
+  fitted, see the README);
 * ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
   ``timings`` as attributes, the cleaning report (``cleaning/duplicates`` and
   ``duplicate_of``: labels merged as copies of another), settings.
@@ -68,6 +70,9 @@ def _write_skeleton(g: h5py.Group, skeleton: Any) -> None:
     for name in ("marker_offsets", "joint_offsets", "bones", "bone_lengths", "marker_rms"):
         if getattr(skeleton, name, None) is not None:
             _put(g, name, np.asarray(getattr(skeleton, name)))
+    from ._determination import bone_uncertainty
+
+    _put(g, "bone_uncertainty", bone_uncertainty(skeleton))
     if getattr(skeleton, "nonrigid_markers", None) is not None:
         _put(g, "nonrigid_markers", np.asarray(skeleton.nonrigid_markers))
 
@@ -171,6 +176,8 @@ def save_result(
             for j, r in enumerate(topo.radii):
                 radii[j, : len(r)] = r
             _put(g, "radii", radii)
+            _put(g, "resolution", result.joint_resolutions())
+            _put(g, "undetermined", np.asarray([u.joint for u in result.undetermined_joints()], dtype=int))
 
             if result.skeleton is not None:
                 _write_skeleton(f.create_group("skeleton"), result.skeleton)

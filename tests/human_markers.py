@@ -81,9 +81,9 @@ def asf_bone_lengths(path: Path) -> dict[str, float]:
     return lengths
 
 
-def bone_lengths_by_part(result) -> dict[str, float]:
-    """Fitted length of each limb bone named by its body parts, e.g. ``"L thigh"`` is
-    the distance between the pelvis-thigh and thigh-shank joints."""
+def bone_index_by_part(result) -> dict[str, int]:
+    """Index into ``result.skeleton.bones`` of each limb bone, named by its body parts:
+    e.g. ``"L thigh"`` is the bone between the pelvis-thigh and thigh-shank joints."""
     sk = result.skeleton
     parts = segment_parts(result.trial.labels, result.segmentation.marker_segment)
     neighbours = {"thigh": ("pelvis", "shank"), "shank": ("thigh", "foot"),
@@ -102,5 +102,5 @@ def bone_lengths_by_part(result) -> dict[str, float]:
         proximal, distal = neighbours[part[2:]]
         proximal = proximal if isinstance(proximal, tuple) else (proximal,)
         if ends & set(proximal) and distal in ends:
-            out[part] = float(sk.bone_lengths[b])
+            out[part] = b
     return out

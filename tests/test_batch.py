@@ -75,6 +75,7 @@ def test_summary_csv(batch, trials):
     a = rows["a"]
     assert a["status"] == "ok" and a["subject"] == "s1" and a["output"].endswith("a.h5")
     assert int(a["frames"]) == trials[0].n_frames and int(a["segments"]) == 3 and a["joints_converged"] == "2/2"
+    assert a["undetermined"] == "0"  # the linkage's calibration motion fixes both joints
     assert abs(float(a["bone:middle"]) - 0.341) < 0.003  # the linkage's middle rod is 0.341 m
     assert json.loads(a["bones"]) == {"R2M1:R1M1-R3M1": pytest.approx(float(a["bone:middle"]), abs=1e-6)}
     assert float(a["ik_rms_median_mm"]) < 3.0 and float(a["seconds"]) > 0

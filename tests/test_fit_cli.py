@@ -76,6 +76,11 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     rigid = json.loads(back.diagnostics.attrs["rigid"])
     assert rigid["sweeps"] == fitted.skeleton.diagnostics["sweeps"]
     assert len(rigid["hinge_shift"]) == len(fitted.edges)
+    # how well the recording fixes each joint and bone (jaxskel._determination)
+    np.testing.assert_allclose(back.joints.resolution, fitted.joint_resolutions())
+    assert np.isfinite(back.joints.resolution).all() and back.joints.undetermined.shape == (0,)
+    np.testing.assert_allclose(back.skeleton.bone_uncertainty, jaxskel.bone_uncertainty(fitted.skeleton))
+    assert back.skeleton.bone_uncertainty.shape == back.skeleton.bone_lengths.shape
     # a reader of a newer schema refuses with a clear message
     with h5py.File(path, "a") as f:
         f.attrs["schema_version"] = 99

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from human_markers import asf_bone_lengths, bone_lengths_by_part, implausible_edges, segment_parts
+from human_markers import asf_bone_lengths, bone_index_by_part, implausible_edges, segment_parts
 
 import jaxskel
 
@@ -38,18 +38,28 @@ def _fit(rel: str, n_segments: int | None):
         return jaxskel.fit_skeleton(trial, n_segments, ik=False)
 
 
-def _compare(result, asf: Path) -> dict[str, tuple[float, float]]:
-    """Fitted part -> (fitted, asf) length in metres, printed."""
+def _compare(result, asf: Path) -> dict[str, tuple[float, float, float]]:
+    """Fitted part -> (fitted, asf, bound) in metres, printed. ``bound`` is how far the
+    bone's joints' resolutions let its length move (:func:`jaxskel.bone_uncertainty`; a
+    lower bound where a joint has none, e.g. a knee between two two-marker segments)."""
     reference = asf_bone_lengths(asf)
+    bound = jaxskel.bone_uncertainty(result.skeleton)
     out = {}
-    for part, length in sorted(bone_lengths_by_part(result).items()):
+    for part, b in sorted(bone_index_by_part(result).items()):
         names = [part[0].lower() + bone for bone in ASF_BONES[part[2:]]]
         if all(name in reference for name in names):  # CMU's 02.asf keeps the legs only
-            out[part] = (length, sum(reference[name] for name in names))
-    print(f"\n{asf.name}: fitted vs .asf (mm)")
-    for part, (fit, ref) in out.items():
-        print(f"  {part:12s} {1e3 * fit:6.0f} {1e3 * ref:6.0f}  {1e3 * (fit - ref):+6.0f}")
+            out[part] = (float(result.skeleton.bone_lengths[b]), sum(reference[name] for name in names), float(bound[b]))
+    print(f"\n{asf.name}: fitted vs .asf, and the fit's bound (mm)")
+    for part, (fit, ref, spread) in out.items():
+        print(f"  {part:12s} {1e3 * fit:6.0f} {1e3 * ref:6.0f}  {1e3 * (fit - ref):+6.0f}  {1e3 * spread:6.0f}")
     return out
+
+
+def _within_target_or_bound(bones: dict[str, tuple[float, float, float]]) -> None:
+    """Every bone within the issue's 2 cm of the .asf, or within the bound the fit gives
+    it: a bone the recording cannot fix may miss, but never by more than the fit says."""
+    for part, (fit, ref, spread) in bones.items():
+        assert abs(fit - ref) < max(0.02, spread), (part, fit, ref, spread)
 
 
 @pytest.fixture(scope="module")
@@ -91,8 +101,9 @@ def test_hdm05_limb_bones_against_asf(hdm_dg):
     within 2 cm."""
     bones = _compare(hdm_dg, DATA / "dynamic_clustering_hdm05" / "HDM_dg.asf")
     assert {"L thigh", "R thigh", "L shank", "R shank", "L upper arm", "R upper arm"} <= set(bones)
-    fit, ref = np.array(list(bones.values())).T
+    fit, ref, _ = np.array(list(bones.values())).T
     assert np.max(np.abs(fit - ref)) < 0.025, bones
+    _within_target_or_bound(bones)
     assert abs(fit.sum() - ref.sum()) < 0.05 * ref.sum()
     assert sum(np.abs(fit - ref) < 0.02) >= 4
 
@@ -145,9 +156,14 @@ def test_cmu_legs_with_automatic_segment_count():
     assert all("head" in pair for pair in bad), bad
     bones = _compare(result, DATA / "timegan_cmu" / "02.asf")
     assert {"L shank", "R shank", "L thigh", "R thigh"} <= set(bones)
-    error = {part: abs(fit - ref) for part, (fit, ref) in bones.items()}
+    error = {part: abs(fit - ref) for part, (fit, ref, _) in bones.items()}
     assert error["L thigh"] < 0.02
     assert min(error["L shank"], error["R shank"]) < 0.02
+    _within_target_or_bound(bones)
+    # The right hip, which this take turns by 11 degrees and about one axis mostly, is
+    # named: its thigh (+74 mm) is the bone the recording cannot fix
+    right_hip = [j for j, (p, c) in enumerate(result.edges.tolist()) if {parts[p], parts[c]} == {"pelvis", "R thigh"}]
+    assert right_hip and right_hip[0] in {u.joint for u in result.undetermined_joints()}
 
 
 def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
