@@ -17,7 +17,9 @@ how well it fixes the skeleton:
 * :func:`joint_resolution`: per joint, the largest ``r_k`` that nothing else fixes. A
   hinge that the rigid stage placed along its axis in the plane of its neighbours
   (:mod:`jaxskel._hinge_centres`) has its weakest direction, the axis, fixed by that
-  placement, so its next ``r_k`` counts;
+  placement, so its next ``r_k`` counts. The placement is the human convention (long
+  bones across their flexion axes); where a body breaks it (random rods), the error
+  along the axis is not in the resolution;
 * :func:`bone_uncertainty`: per bone (two joints on one segment), how far its length can
   move with its joints inside their resolution ellipsoids ``sum_k r_k^2 v_k v_k^T``
   (the same directions left out): ``e_j = sqrt(sum_k (r_k |v_k . u|)^2)`` for the bone's
@@ -33,9 +35,9 @@ width is not identified by any standard of biomechanics), and it lies between th
 families measured (2026-11-25, ``jaxskel.synth`` full bodies, 30 s at 120 Hz, 2 mm
 noise, gaps, ``fit_skeleton`` defaults): a calibration motion reads 12-51 mm at 1 mm
 soft tissue and 15-47 mm at 3 mm (knees and elbows 13-27 mm past their axis), while a
-walk's hips read 138-154 mm and the shoulders of its arm-long groups 292-326 mm (those
-fits are wrong, and this is where they say so), and 30 % of the calibration range
-108-211 mm at ankles and wrists (joint errors up to 30 mm). The resolution is a
+walk's hips read 138-154 mm and the shoulders of its arm-long groups 292-326 mm (seeds
+0, 1, 15; those fits are wrong, and this is where they say so), and 30 % of the
+calibration range 108-211 mm at ankles and wrists (joint errors up to 30 mm). The resolution is a
 sensitivity to an artefact of the misfit's size, not an error bar: errors ran at
 0.04-0.7 of it, more only along the axis of a hinge the rigid stage could not place
 (the elbows of the 30 % fit, 53 mm off along it against 44-74 mm), where soft tissue
@@ -58,7 +60,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["UNDETERMINED_RESOLUTION", "UndeterminedJoint", "bone_uncertainty", "joint_resolution", "undetermined_joints"]
+__all__ = [
+    "UNDETERMINED_RESOLUTION", "UndeterminedJoint", "bone_uncertainty", "joint_resolution", "undetermined_joints",
+]
 
 #: A joint whose centre the recording fixes only to within more than this (metres) is
 #: named undetermined (module docstring).

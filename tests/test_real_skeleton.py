@@ -48,7 +48,8 @@ def _compare(result, asf: Path) -> dict[str, tuple[float, float, float]]:
     for part, b in sorted(bone_index_by_part(result).items()):
         names = [part[0].lower() + bone for bone in ASF_BONES[part[2:]]]
         if all(name in reference for name in names):  # CMU's 02.asf keeps the legs only
-            out[part] = (float(result.skeleton.bone_lengths[b]), sum(reference[name] for name in names), float(bound[b]))
+            length = float(result.skeleton.bone_lengths[b])
+            out[part] = (length, sum(reference[name] for name in names), float(bound[b]))
     print(f"\n{asf.name}: fitted vs .asf, and the fit's bound (mm)")
     for part, (fit, ref, spread) in out.items():
         print(f"  {part:12s} {1e3 * fit:6.0f} {1e3 * ref:6.0f}  {1e3 * (fit - ref):+6.0f}  {1e3 * spread:6.0f}")
