@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from helpers import off_axis_rmse, segment_map
 
+import jaxskel
+
 
 def _cluster_poses(positions, offsets):
     """Horn alignment per frame of (P, 3) ``offsets`` onto (F, P, 3) ``positions``: R (F, 3, 3), t (F, 3)."""
@@ -97,7 +99,8 @@ def floor_skeleton(trial, truth) -> dict[str, np.ndarray]:
 def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
     """The same measures for a :func:`jaxskel.fit_skeleton` result (with its IK stage: the
     joints are ``result.motion.joint_positions``), indexed by the true joints and bones
-    (NaN where the fitted tree lacks that joint or bone)."""
+    (NaN where the fitted tree lacks that joint or bone), and ``bone_bound``: the fit's
+    own bound on each bone (:func:`jaxskel.bone_uncertainty`), relative like the error."""
     seg_map = segment_map(result, trial, truth)
     true_joint = {frozenset(map(int, e)): j for j, e in enumerate(truth.edges)}
     joint_of = {
@@ -111,8 +114,11 @@ def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
         joint_rmse[tj] = off_axis_rmse(positions[:, j], truth, tj)
     bone_index = {frozenset(map(int, b)): k for k, b in enumerate(truth.bones)}
     bone_error = np.full(len(truth.bones), np.nan)
-    for (j0, j1), length in zip(result.skeleton.bones, result.skeleton.bone_lengths):
+    bone_bound = np.full(len(truth.bones), np.nan)
+    bounds = jaxskel.bone_uncertainty(result.skeleton)
+    for (j0, j1), length, bound in zip(result.skeleton.bones, result.skeleton.bone_lengths, bounds):
         k = bone_index.get(frozenset((joint_of[int(j0)], joint_of[int(j1)])))
         if k is not None:
             bone_error[k] = abs(length - truth.bone_lengths[k]) / truth.bone_lengths[k]
-    return {"joint_rmse": joint_rmse, "bone_error": bone_error}
+            bone_bound[k] = bound / truth.bone_lengths[k]
+    return {"joint_rmse": joint_rmse, "bone_error": bone_error, "bone_bound": bone_bound}
