@@ -60,6 +60,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ._errors import InputError
+
 __all__ = [
     "UNDETERMINED_RESOLUTION", "UndeterminedJoint", "bone_uncertainty", "joint_resolution", "undetermined_joints",
 ]
@@ -78,6 +80,16 @@ class UndeterminedJoint(NamedTuple):
 
     joint: int
     resolution: float
+
+
+def _require_skeleton(skeleton: Any, caller: str) -> None:
+    """Raise :class:`InputError` unless ``skeleton`` looks like a :class:`jaxskel.Skeleton`
+    (the fields read here: ``diagnostics``, ``n_joints``, ``bones``)."""
+    if not all(hasattr(skeleton, name) for name in ("diagnostics", "n_joints", "bones")):
+        raise InputError(
+            f"{caller}() takes the rigid skeleton of a fit (result.skeleton from jaxskel.fit_skeleton), "
+            f"got {type(skeleton).__name__}"
+        )
 
 
 def _report(diagnostics: Mapping[str, Any], n_joints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -107,6 +119,7 @@ def joint_resolution(skeleton: Any) -> np.ndarray:
     (its ``diagnostics["anchored"]``); one from :func:`jaxskel.fit_rigid` alone has no
     fixed-centre fit, and every joint reads NaN.
     """
+    _require_skeleton(skeleton, "joint_resolution")
     r, _, placed = _report(skeleton.diagnostics, skeleton.n_joints)
     return np.max(_free_directions(r, placed), axis=1)
 
@@ -119,6 +132,7 @@ def bone_uncertainty(skeleton: Any) -> np.ndarray:
     one end has none the figure is a lower bound (:func:`joint_resolution` is NaN there);
     NaN where neither end has one.
     """
+    _require_skeleton(skeleton, "bone_uncertainty")
     bones = np.asarray(skeleton.bones, dtype=int).reshape(-1, 2)
     r, cos, placed = _report(skeleton.diagnostics, skeleton.n_joints)
     r = _free_directions(r, placed)
@@ -133,6 +147,7 @@ def undetermined_joints(skeleton: Any, *, limit: float = UNDETERMINED_RESOLUTION
     leaving out those the recording does not exercise at all (named separately)."""
     from ._anchored_centres import MIN_EXERCISE_DEG
 
+    _require_skeleton(skeleton, "undetermined_joints")
     n_joints = skeleton.n_joints
     resolution = joint_resolution(skeleton)
     anchored = skeleton.diagnostics.get("anchored") or {}

@@ -228,13 +228,6 @@ class SkeletonResult:
         spread = bone_uncertainty(self.skeleton)
         return {self._bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
 
-    def _bones_with_unknown_end(self) -> set[str]:
-        """Names of the bones one of whose joints has no resolution (NaN)."""
-        if self.skeleton is None:
-            return set()
-        unknown = ~np.isfinite(self.joint_resolutions())
-        return {self._bone_name(j0, j1) for j0, j1 in self.skeleton.bones if unknown[j0] or unknown[j1]}
-
     def near_ties(self, z: float = 2.0) -> list:
         """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
         the tree would joint instead (:func:`jaxskel.near_ties`)."""
@@ -301,7 +294,9 @@ class SkeletonResult:
         bones = self.bone_lengths()
         if bones:
             spread = self.bone_uncertainties()
-            partial = self._bones_with_unknown_end()
+            unknown = ~np.isfinite(resolution)  # a bone with such an end has a lower bound only
+            ends = self.skeleton.bones if self.skeleton is not None else ()
+            partial = {self._bone_name(j0, j1) for j0, j1 in ends if unknown[j0] or unknown[j1]}
             lines.append(
                 "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; "
                 ">= where one joint's is unknown):"

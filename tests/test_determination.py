@@ -81,6 +81,12 @@ def test_undetermined_joints_are_those_beyond_the_limit_that_the_motion_exercise
     assert UNDETERMINED_RESOLUTION == 0.1
 
 
+@pytest.mark.parametrize("function", [jaxskel.joint_resolution, jaxskel.bone_uncertainty, jaxskel.undetermined_joints])
+def test_anything_but_a_skeleton_is_refused_with_a_clear_error(function):
+    with pytest.raises(jaxskel.InputError, match=rf"{function.__name__}\(\) takes the rigid skeleton of a fit"):
+        function("result.h5")
+
+
 def test_a_fit_reports_resolutions_and_bounds_on_the_linkage():
     """The 3-link chain, 10 s of calibration motion: both joints have an anchor, are
     determined to a few centimetres, and the middle rod's length error (truth known) lies
