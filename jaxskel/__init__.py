@@ -70,6 +70,8 @@ _LAZY = {
     "undetermined_joints": "_determination",
     "joint_resolution": "_determination",
     "bone_uncertainty": "_determination",
+    "lowpass_markers": "_lowpass",
+    "Lowpassed": "_lowpass",
     "solve_joint": "_jointcost",
     "solve_joints": "_jointcost",
     "JointSolution": "_jointcost",

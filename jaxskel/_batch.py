@@ -64,6 +64,7 @@ from ._batch_io import (
     write_summary,
 )
 from ._errors import InputError, JaxskelError
+from ._lowpass import check_cutoff
 from ._trial import Trial
 
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
@@ -490,6 +491,7 @@ def fit_batch(
     ik: bool = True,
     seed: int = 0,
     confirm_merges: bool = True,
+    ik_lowpass: float | str | None = "auto",
     names: Sequence[str] | None = None,
     subjects: Sequence[str] | None = None,
     bones: Mapping[str, Any] | None = None,
@@ -519,7 +521,7 @@ def fit_batch(
     outdir
         Folder for one result file per trial (``<name>.h5``, sub-folders kept) and
         the summary table. Without it, nothing is written and results are returned.
-    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges
+    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges, ik_lowpass
         As in :func:`jaxskel.fit_skeleton`, the same for every trial.
     names, subjects
         Per-item names (result file names) and subject labels (summary column,
@@ -561,6 +563,7 @@ def fit_batch(
         raise InputError("fit_batch with a scheduler needs outdir: the workers write the result files there")
     if method not in ("lm", "ncg"):
         raise InputError(f"method must be 'lm' or 'ncg', got {method!r}")
+    check_cutoff(ik_lowpass, allow_none=True)
     if int(batch_size) < 1 or int(jobs) < 1:
         raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
     if out is not None:
@@ -572,7 +575,7 @@ def fit_batch(
     options = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels, alpha=alpha,
         alpha_tree=alpha_tree, method=method, topology_frames=topology_frames, rigid=rigid, ik=ik, seed=seed,
-        confirm_merges=confirm_merges,
+        confirm_merges=confirm_merges, ik_lowpass=ik_lowpass,
     )
     keep = (out is None) if keep_results is None else bool(keep_results)
 

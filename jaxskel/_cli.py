@@ -135,6 +135,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--joint-centres", choices=["anchored", "per_frame"], default="anchored",
                         help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
                              "frame along the directions the data resolve (default), or one per frame (the paper)")
+        sp.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
+                        help="low-pass filter of the markers the IK poses: a cutoff per marker from its own "
+                             "noise (auto, default), none, or a cutoff in Hz")
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
         sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
@@ -179,6 +182,8 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
     batch.add_argument("--method", choices=["lm", "ncg"], default="lm")
     batch.add_argument("--seed", type=int, default=0)
+    batch.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
+                       help="low-pass filter of the markers the IK poses (default: auto, from each marker's noise)")
     batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -217,6 +222,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         progress=not quiet,
         hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
         joint_centres=getattr(args, "joint_centres", "anchored"),
+        ik_lowpass=getattr(args, "ik_lowpass", "auto"),
     )
     extra_groups = {}
     if args.parameterize:
@@ -286,7 +292,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
             args.directory, args.outdir, n_segments=args.segments, root=_root_arg(args.root),
             clean_data=not args.no_clean, merge_labels=merge, method=args.method, rigid=not args.no_rigid,
             ik=not args.no_rigid, seed=args.seed, bones=bones, batch_size=args.batch_size, jobs=args.jobs,
-            scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
+            scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet, ik_lowpass=args.ik_lowpass,
         )
     finally:
         if cluster is not None:
@@ -301,6 +307,19 @@ def _fit_batch(args: argparse.Namespace) -> int:
     for o in batch.failed:
         print(f"jaxskel: {o.name}: {o.error}", file=sys.stderr)
     return 1 if batch.failed else 0
+
+
+def _cutoff_arg(text: str) -> float | str | None:
+    """``--ik-lowpass``: ``auto``, ``none`` or a positive frequency in Hz."""
+    if text.lower() in ("auto", "none"):
+        return None if text.lower() == "none" else "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected auto, none or a cutoff in Hz, got {text!r}")
+    return value
 
 
 def _root_arg(root: str | None) -> int | str | None:

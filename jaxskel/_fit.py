@@ -29,6 +29,7 @@ from ._errors import (
     AmbiguousTreeWarning, DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning,
 )
 from ._io import _median_extent
+from ._lowpass import check_cutoff
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._split_refit import fit_growing_count
 from ._topology import Topology, fit_topology, joint_costs
@@ -308,6 +309,14 @@ class SkeletonResult:
         if self.motion is not None:
             rms = np.asarray(self.motion.marker_rms)
             lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
+            cutoff = getattr(self.motion, "lowpass_hz", None)
+            if cutoff is not None:
+                done = cutoff[np.isfinite(cutoff)]
+                lines.append(
+                    f"IK markers low-passed at {np.min(done):.1f}-{np.max(done):.1f} Hz (median {np.median(done):.1f}), "
+                    f"{len(cutoff) - len(done)} of {len(cutoff)} as measured"
+                    if len(done) else f"IK markers as measured (no white noise to filter in any of {len(cutoff)})"
+                )
         return "\n".join(lines)
 
     __str__ = summary
@@ -562,6 +571,7 @@ def fit_skeleton(
     confirm_merges: bool = True,
     hinge_centres: str = "limb_plane",
     joint_centres: str = "anchored",
+    ik_lowpass: float | str | None = "auto",
 ) -> SkeletonResult:
     """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
 
@@ -616,7 +626,14 @@ def fit_skeleton(
         ``skeleton.diagnostics["anchored"]``, and its resolutions say how well the
         recording fixes each joint and bone (:meth:`SkeletonResult.joint_resolutions`,
         :meth:`SkeletonResult.undetermined_joints`; ``"per_frame"`` has none, NaN).
+    ik_lowpass
+        Low-pass filter of the markers the IK poses (:func:`jaxskel.lowpass_markers`;
+        the skeleton is fitted to the markers as measured): ``"auto"`` (default), a
+        cutoff for each marker by residual analysis against its own white noise, which
+        leaves noiseless or fast markers as they are; a frequency in Hz for every
+        marker; or ``None``, no filter. The cutoffs are in ``motion.lowpass_hz``.
     """
+    check_cutoff(ik_lowpass, allow_none=True)
     if hinge_centres not in HINGE_CENTRES:
         raise InputError(f"hinge_centres must be one of {HINGE_CENTRES}, got {hinge_centres!r}")
     if joint_centres not in JOINT_CENTRES:
@@ -625,7 +642,7 @@ def fit_skeleton(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
         alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
         rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges, hinge_centres=hinge_centres,
-        joint_centres=joint_centres,
+        joint_centres=joint_centres, ik_lowpass=ik_lowpass,
     )
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
@@ -644,6 +661,8 @@ def fit_skeleton(
         clean_kwargs=clean_kwargs, segment_kwargs=segment_kwargs, settings=settings, on_stage=on_stage,
     )
 
+    if ik_lowpass is not None and ik_lowpass != "auto":
+        check_cutoff(ik_lowpass, rate=prep.trial.rate)
     joints_and_skeleton = functools.partial(
         fit_joints_and_skeleton, alpha=alpha, alpha_tree=alpha_tree, method=method, root=root,
         topology_frames=topology_frames, segment_names=segment_names, on_stage=on_stage,
@@ -813,7 +832,21 @@ def _inverse_kinematics(prep: PreparedFit, skeleton: Any, work: Trial, on_stage:
 
         # the refinement's slot count: its compiled solver serves the IK too
         slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
-        return inverse_kinematics(skeleton, work, slots=slots)
+        cutoff = prep.settings.get("ik_lowpass", "auto")
+        if cutoff is None:
+            return inverse_kinematics(skeleton, work, slots=slots)
+        from ._lowpass import lowpass_markers
+
+        # IK poses every frame on its own: the markers' white noise is filtered out first
+        low = lowpass_markers(work, cutoff)
+        motion = inverse_kinematics(skeleton, low.trial, slots=slots)
+        # the residual is reported against the markers as measured, not as filtered
+        column = [work.labels.index(label) for label in motion.marker_labels]
+        raw = np.asarray(work.positions)[:, column]
+        miss = np.sum((motion.fitted_markers - raw) ** 2, axis=-1)
+        seen = np.isfinite(miss)
+        marker_rms = np.sqrt(np.where(seen, miss, 0.0).sum(1) / np.maximum(seen.sum(1), 1))
+        return dataclasses.replace(motion, marker_rms=marker_rms, lowpass_hz=low.cutoff_hz[column])
 
 
 def add_motion(prep: PreparedFit, result: SkeletonResult, on_stage: Any = None) -> SkeletonResult:

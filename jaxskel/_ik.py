@@ -701,6 +701,11 @@ class Motion:
         Every frame's solver succeeded.
     marker_labels, rate
         Labels of the marker axis and the frame rate (Hz; None if unknown).
+    lowpass_hz
+        (M,) the cutoff each marker was low-pass filtered at before the IK
+        (:func:`jaxskel.lowpass_markers`; NaN: as measured), ``None`` when none was
+        (:func:`inverse_kinematics` itself never filters; :func:`jaxskel.fit_skeleton`
+        does, and then reports ``marker_rms`` against the markers as measured).
     """
 
     root_position: np.ndarray
@@ -715,6 +720,7 @@ class Motion:
     converged: bool
     marker_labels: tuple[str, ...]
     rate: float | None = None
+    lowpass_hz: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -87,6 +87,7 @@ def _write_motion(g: h5py.Group, motion: Any) -> None:
         ("marker_rms", "marker_rms"),
         ("steps", "steps"),
         ("result", "result"),
+        ("lowpass_hz", "lowpass_hz"),
     ):
         if getattr(motion, src, None) is not None:
             _put(g, dst, np.asarray(getattr(motion, src)))

@@ -104,7 +104,7 @@ _NOISE_DIFFERENCE_ORDER = 4
 _CHI2_3_MEDIAN = 2.365974
 
 
-def white_noise(x: np.ndarray) -> float:
+def white_noise(x: np.ndarray, *, order: int = _NOISE_DIFFERENCE_ORDER) -> float:
     """Std-dev (per coordinate, input units) of the white measurement noise in a recording.
 
     With ``D = Delta^k x_i`` the k-th difference along time of a marker's position
@@ -119,6 +119,10 @@ def white_noise(x: np.ndarray) -> float:
     ----------
     x
         (T, M, 3) positions, NaN where missing.
+    order
+        ``k``, the order of the time difference (``C(2k, k)`` in place of 70). Motion
+        fast against the frame rate adds to a low order's estimate more than to a higher
+        one's; for white noise every order reads the same ``s``.
 
     Returns
     -------
@@ -130,7 +134,7 @@ def white_noise(x: np.ndarray) -> float:
     InputError
         When ``x`` is not of shape (T, M, 3).
     """
-    k = _NOISE_DIFFERENCE_ORDER
+    k = int(order)
     x = np.asarray(x, dtype=float)
     if x.ndim != 3 or x.shape[-1] != 3:
         raise InputError(f"white_noise() takes positions of shape (T, M, 3), got shape {x.shape}")
