@@ -207,3 +207,14 @@ def test_result_file_and_command_line_carry_the_cutoffs(body_fits, tmp_path):
         np.testing.assert_array_equal(f["motion/lowpass_hz"][()], 8.0)
     with pytest.raises(SystemExit):
         main(["fit", str(src), "-o", str(tmp_path / "bad.h5"), "--quiet", "--ik-lowpass", "smooth"])
+
+
+def test_fit_batch_passes_the_cutoff_on_and_refuses_a_bad_one():
+    trial, _ = synth.simulate(synth.linkage(), duration=5.0, seed=1, noise=0.001)
+    (fixed,) = jaxskel.fit_batch([trial], ik_lowpass=8.0)
+    assert fixed.ok, fixed.error
+    np.testing.assert_array_equal(fixed.result.motion.lowpass_hz, 8.0)
+    (raw,) = jaxskel.fit_batch([trial], ik_lowpass=None)
+    assert raw.ok and raw.result.motion.lowpass_hz is None
+    with pytest.raises(jaxskel.InputError, match="low-pass cutoff"):
+        jaxskel.fit_batch([trial], ik_lowpass="fast")
