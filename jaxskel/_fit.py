@@ -661,8 +661,7 @@ def fit_skeleton(
         clean_kwargs=clean_kwargs, segment_kwargs=segment_kwargs, settings=settings, on_stage=on_stage,
     )
 
-    if ik_lowpass is not None and ik_lowpass != "auto":
-        check_cutoff(ik_lowpass, rate=prep.trial.rate)
+    check_cutoff(ik_lowpass, rate=prep.trial.rate, allow_none=True)  # the Nyquist frequency is known now
     joints_and_skeleton = functools.partial(
         fit_joints_and_skeleton, alpha=alpha, alpha_tree=alpha_tree, method=method, root=root,
         topology_frames=topology_frames, segment_names=segment_names, on_stage=on_stage,
@@ -841,7 +840,7 @@ def _inverse_kinematics(prep: PreparedFit, skeleton: Any, work: Trial, on_stage:
         low = lowpass_markers(work, cutoff)
         motion = inverse_kinematics(skeleton, low.trial, slots=slots)
         # the residual is reported against the markers as measured, not as filtered
-        column = [work.labels.index(label) for label in motion.marker_labels]
+        column = work.marker_index(motion.marker_labels)
         raw = np.asarray(work.positions)[:, column]
         miss = np.sum((motion.fitted_markers - raw) ** 2, axis=-1)
         seen = np.isfinite(miss)

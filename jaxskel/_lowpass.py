@@ -108,32 +108,30 @@ def _runs(observed: Bool[np.ndarray, " F"], bounds: tuple[tuple[int, int], ...])
 
 def _filtered(
     x: Float[np.ndarray, "F 3"], runs: list[tuple[int, int]], rate: float, cutoff: float, order: int
-) -> tuple[Float[np.ndarray, "F 3"], Bool[np.ndarray, " F"]]:
-    """``x`` with each run long enough filtered at ``cutoff``; which samples were."""
+) -> Float[np.ndarray, "F 3"]:
+    """``x`` with each of ``runs`` filtered at ``cutoff``."""
     b, a = butter(order, cutoff / (0.5 * rate))
-    pad = 3 * max(len(a), len(b))
-    out, done = x.copy(), np.zeros(len(x), dtype=bool)
+    out = x.copy()
     for start, stop in runs:
-        if stop - start > pad:
-            out[start:stop] = filtfilt(b, a, x[start:stop], axis=0)
-            done[start:stop] = True
-    return out, done
+        out[start:stop] = filtfilt(b, a, x[start:stop], axis=0)
+    return out
 
 
 def _residual_cutoff(
     x: Float[np.ndarray, "F 3"], runs: list[tuple[int, int]], rate: float, noise: float, order: int
 ) -> tuple[Float[np.ndarray, "F 3"], float]:
-    """Winter's choice (module docstring): the lowest candidate cutoff whose residual is
-    within ``noise``, found by bisection (the residual falls as the cutoff rises);
-    ``(x, nan)`` when none is."""
+    """Winter's choice (module docstring): the lowest candidate cutoff whose residual over
+    ``runs`` is within ``noise``, found by bisection (the residual falls as the cutoff
+    rises); ``(x, nan)`` when none is."""
     grid = np.geomspace(1.0, _MAX_CUTOFF_OF_NYQUIST * 0.5 * rate, _N_CANDIDATES)
+    done = np.zeros(len(x), dtype=bool)
+    for start, stop in runs:
+        done[start:stop] = True
     best: tuple[Float[np.ndarray, "F 3"], float] = (x, float("nan"))
     lo, hi = 0, len(grid) - 1
     while lo <= hi:
         mid = (lo + hi) // 2
-        y, done = _filtered(x, runs, rate, float(grid[mid]), order)
-        if not done.any():
-            return x, float("nan")
+        y = _filtered(x, runs, rate, float(grid[mid]), order)
         residual = float(np.sqrt(np.mean((y[done] - x[done]) ** 2)))
         if residual <= noise:
             best, hi = (y, float(grid[mid])), mid - 1
@@ -174,9 +172,10 @@ def lowpass_markers(trial: Trial, cutoff: float | str = "auto", *, order: int = 
     bounds = tuple((int(a), int(b)) for a, b in trial.metadata.get("trial_bounds", ()))
     out = x.copy()
     cutoff_hz = np.full(x.shape[1], np.nan)
+    pad = 3 * (order + 1)  # filtfilt's padding: 3x the length of a Butterworth filter's coefficients
     for k in range(x.shape[1]):
-        runs = _runs(mask[:, k], bounds)
-        if not runs:
+        runs = [(start, stop) for start, stop in _runs(mask[:, k], bounds) if stop - start > pad]
+        if not runs:  # no run long enough to filter
             continue
         if automatic:
             if np.isfinite(np.diff(x[:, k], n=5, axis=0)).all(axis=-1).sum() < _MIN_NOISE_SAMPLES:
@@ -187,7 +186,6 @@ def lowpass_markers(trial: Trial, cutoff: float | str = "auto", *, order: int = 
             noise = min(fourth, fifth)
             out[:, k], cutoff_hz[k] = _residual_cutoff(x[:, k], runs, rate, noise, order)
         else:
-            out[:, k], done = _filtered(x[:, k], runs, rate, float(cutoff), order)
-            cutoff_hz[k] = float(cutoff) if done.any() else np.nan
+            out[:, k], cutoff_hz[k] = _filtered(x[:, k], runs, rate, float(cutoff), order), float(cutoff)
     out[~mask] = np.nan
     return Lowpassed(trial.replace(positions=out), cutoff_hz)
