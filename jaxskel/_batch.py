@@ -65,6 +65,7 @@ from ._batch_io import (
 )
 from ._errors import InputError, JaxskelError
 from ._lowpass import check_cutoff
+from ._map_limit import near_map_limit, release_programs_near_map_limit
 from ._trial import Trial
 
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
@@ -451,6 +452,14 @@ def run_local(
                 else:
                     works.append(fut.result())
             if works:
+                if near_map_limit():
+                    # XLA crashes past the kernel's mapping limit; JAX's programs may be
+                    # dropped only while no other thread runs them (jaxskel._map_limit)
+                    for fut in finishing:
+                        fut.exception()
+                    for _, fut in preparing:
+                        fut.exception()
+                    release_programs_near_map_limit(stacklevel=1)
                 for work in _solve_batch(works, options, devices, fail):
                     finishing.append(finish_pool.submit(finish, work))
             # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished

@@ -30,6 +30,7 @@ from ._errors import (
 )
 from ._io import _median_extent
 from ._lowpass import check_cutoff
+from ._map_limit import release_programs_near_map_limit
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._split_refit import fit_growing_count
 from ._topology import Topology, fit_topology, joint_costs
@@ -638,6 +639,7 @@ def fit_skeleton(
         raise InputError(f"hinge_centres must be one of {HINGE_CENTRES}, got {hinge_centres!r}")
     if joint_centres not in JOINT_CENTRES:
         raise InputError(f"joint_centres must be one of {JOINT_CENTRES}, got {joint_centres!r}")
+    release_programs_near_map_limit(stacklevel=2)  # a long-lived process: XLA crashes past the limit
     settings = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
         alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,

@@ -9,6 +9,50 @@ from pathlib import Path
 # with their own directory (test_fit_cli.py). Set JAXSKEL_CACHE_DIR to test with a cache.
 os.environ.setdefault("JAXSKEL_CACHE_DIR", "")
 
+import gc
+import shutil
+import tempfile
+
+import jax
+import pytest
+
+# One XLA compilation cache per test run, shared by the xdist workers and the processes
+# tests start (notebook kernels, command lines): the controller makes the directory, sets
+# it in the environment they all inherit (JAX reads JAX_COMPILATION_CACHE_DIR at import)
+# and removes it at the end. Most of the suite's time is XLA compiling the solvers (4-6 s
+# per program and shape on two cores), many of them the same in both workers. The cache
+# is fresh per run, so no test sees code compiled by another version, and it is XLA's
+# cache alone: jaxskel's saved programs (_program_cache) stay off, so every test traces
+# the library's code as a user's first run does. Bounded, so JAX locks each entry.
+_RUN_CACHE = {"JAX_COMPILATION_CACHE_DIR": None, "JAX_COMPILATION_CACHE_MAX_SIZE": str(4 * 2**30)}
+
+
+def pytest_configure(config):
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") is None and not hasattr(config, "workerinput"):
+        config._jaxskel_run_cache = tempfile.mkdtemp(prefix="jaxskel-test-xla-")
+        os.environ.update({**_RUN_CACHE, "JAX_COMPILATION_CACHE_DIR": config._jaxskel_run_cache})
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_max_size", int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"]))
+        jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+
+
+def pytest_unconfigure(config):
+    made = getattr(config, "_jaxskel_run_cache", None)
+    if made:
+        shutil.rmtree(made, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _drop_compiled_programs():
+    """Each test module's compiled programs go when it ends (the next module loads what it
+    shares from the run's cache). A worker keeps them otherwise: ~12 memory mappings each,
+    54,941 in one worker by the end of a run, against the kernel's limit of 65,530
+    (vm.max_map_count) past which XLA segfaults (jaxskel._map_limit)."""
+    yield
+    jax.clear_caches()
+    gc.collect()
+
+
 import matplotlib
 
 matplotlib.use("Agg")

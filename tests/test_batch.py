@@ -190,3 +190,20 @@ def test_chunks_are_spread_over_several_devices(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900)
     assert "SHARDED OK" in proc.stdout, proc.stderr[-3000:]
+
+
+def test_programs_are_dropped_near_the_mapping_limit_and_the_batch_is_unchanged(batch, trials, monkeypatch):
+    """Past three quarters of vm.max_map_count (XLA segfaults past the limit itself),
+    fit_batch drops JAX's compiled programs before it solves the next batch, says so once,
+    and the trial's fit is what it was with the programs kept."""
+    from jaxskel import _map_limit
+
+    monkeypatch.setattr(_map_limit, "RELEASE_FRACTION", 0.0)  # every count is near the limit
+    monkeypatch.setitem(_map_limit._state, "warned", False)
+    with pytest.warns(RuntimeWarning, match="vm.max_map_count") as caught:
+        (again,) = jaxskel.fit_batch(trials[:1], names=["a"], rigid=False, ik=False, keep_results=True)
+    assert sum("vm.max_map_count" in str(w.message) for w in caught) == 1
+    _, result = batch
+    np.testing.assert_array_equal(again.result.edges, result[0].result.edges)
+    np.testing.assert_allclose(again.result.topology.pair_costs.cost, result[0].result.topology.pair_costs.cost,
+                               rtol=1e-9)
