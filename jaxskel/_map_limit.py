@@ -6,14 +6,14 @@ of the process. Linux caps a process's mappings at ``vm.max_map_count`` (65,530 
 default); once a new mapping is refused, XLA dies with a segmentation fault, not an
 exception. A process that fits many recordings of different shapes (a notebook, a
 training loop, ``fit_batch`` over a large folder) gets there: a pytest worker of this
-package's suite held 54,941 mappings after ~230 tests, and two such workers died with a
-segfault late in a run.
+package's suite held 54,941 mappings after ~230 tests, and such workers died with a
+segfault late in a run (three times seen).
 
 :func:`release_programs_near_map_limit` runs before each fit: past three quarters of the
 limit it drops JAX's compiled programs (:func:`jax.clear_caches`, which unmaps them;
-later calls compile again) and says so, once per process, in a :class:`RuntimeWarning` (shown by default, unlike a
-:class:`ResourceWarning`).
-Where ``/proc`` does not tell (not Linux), it does nothing.
+later calls compile again) and says so, once per process, in a :class:`RuntimeWarning`
+(shown by default, unlike a :class:`ResourceWarning`). Where ``/proc`` does not tell (not
+Linux), it does nothing.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from pathlib import Path
 
 __all__ = ["map_usage", "near_map_limit", "release_programs_near_map_limit"]
 
-#: Fraction of ``vm.max_map_count`` past which JAX's programs are dropped: a fit of a new
-#: shape adds a few thousand mappings (a 10-segment body: ~90 programs), so a quarter of
-#: the default limit (16k) leaves room for several.
+#: Fraction of ``vm.max_map_count`` past which JAX's programs are dropped. Measured on a
+#: full body: the first fit in a process adds ~5,000 mappings, a fit of another length
+#: ~1,300, so the last quarter of the default limit (16k) leaves room for several fits.
 RELEASE_FRACTION = 0.75
 
 _state = {"warned": False}
