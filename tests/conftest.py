@@ -24,15 +24,17 @@ import pytest
 # is fresh per run, so no test sees code compiled by another version, and it is XLA's
 # cache alone: jaxskel's saved programs (_program_cache) stay off, so every test traces
 # the library's code as a user's first run does. Bounded, so JAX locks each entry.
-_RUN_CACHE = {"JAX_COMPILATION_CACHE_DIR": None, "JAX_COMPILATION_CACHE_MAX_SIZE": str(4 * 2**30)}
+_RUN_CACHE_BYTES = str(4 * 2**30)
 
 
 def pytest_configure(config):
     if os.environ.get("JAX_COMPILATION_CACHE_DIR") is None and not hasattr(config, "workerinput"):
         config._jaxskel_run_cache = tempfile.mkdtemp(prefix="jaxskel-test-xla-")
-        os.environ.update({**_RUN_CACHE, "JAX_COMPILATION_CACHE_DIR": config._jaxskel_run_cache})
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_max_size", int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"]))
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = config._jaxskel_run_cache
+        os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = _RUN_CACHE_BYTES
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):  # ours, or one the developer set
+        size = os.environ.get("JAX_COMPILATION_CACHE_MAX_SIZE", _RUN_CACHE_BYTES)
+        jax.config.update("jax_compilation_cache_max_size", int(size))
         jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 
