@@ -310,7 +310,7 @@ class SkeletonResult:
         if self.motion is not None:
             rms = np.asarray(self.motion.marker_rms)
             lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
-            cutoff = getattr(self.motion, "lowpass_hz", None)
+            cutoff = self.motion.lowpass_hz
             if cutoff is not None:
                 done = cutoff[np.isfinite(cutoff)]
                 lines.append(

@@ -46,6 +46,7 @@ import numpy as np
 from jaxtyping import Bool, Float
 from scipy.signal import butter, filtfilt
 
+from ._clean import contiguous_runs
 from ._errors import InputError
 from ._segment import white_noise
 from ._trial import Trial
@@ -94,15 +95,10 @@ def check_cutoff(cutoff: object, *, rate: float | None = None, allow_none: bool 
 
 def _runs(observed: Bool[np.ndarray, " F"], bounds: tuple[tuple[int, int], ...]) -> list[tuple[int, int]]:
     """``(start, stop)`` of every run of observed samples, split at the trial bounds."""
-    cut = np.zeros(len(observed) + 1, dtype=bool)
-    for start, stop in bounds:
-        cut[start] = cut[stop] = True
     out = []
-    edges = np.flatnonzero(np.diff(np.r_[0, observed.astype(np.int8), 0]))
-    for start, stop in zip(edges[::2], edges[1::2]):
-        inner = [int(b) for b in np.flatnonzero(cut[start + 1 : stop]) + start + 1]
-        points = [int(start), *inner, int(stop)]
-        out.extend(zip(points[:-1], points[1:]))
+    for first, last in bounds or ((0, len(observed)),):
+        starts, stops = contiguous_runs(observed[first:last])
+        out.extend(zip((starts + first).tolist(), (stops + first).tolist()))
     return out
 
 
