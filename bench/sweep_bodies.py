@@ -11,7 +11,8 @@ Each is fitted with :func:`jaxskel.fit_skeleton` defaults (no IK) and judged on 
 truth: ``seg`` the marker grouping is exact, ``tree`` the fitted edges (segments named by
 the true segment most of their markers sit on) are exactly the true joints. Printed with
 the segment counts (and whether the count grew after the rigid fit, :mod:`jaxskel._split_refit`),
-the markers the rigid skeleton flags (``NonRigidMarkerWarning``) and the other warnings, so a
+the joints the pose check exchanged (:mod:`jaxskel._pose_check`), the markers the rigid
+skeleton flags (``NonRigidMarkerWarning``) and the other warnings, so a
 wrong answer that says nothing stands out.
 
 Usage::
@@ -82,6 +83,7 @@ def run_one(kind: str, size: int, seed: int) -> dict:
         "split_from": result.segmentation.split_from,
         "flagged": list(result.skeleton.nonrigid_markers) if result.skeleton is not None else [],
         "warnings": sorted({w.category.__name__ for w in caught}),
+        "pose_exchanges": len(result.topology.pose_exchanges),
         "seconds": round(seconds, 1),
     }
 
@@ -98,6 +100,8 @@ def main() -> None:
         row = run_one(kind, size, seed)
         rows.append(row)
         note = ", ".join(row["warnings"]) + (f" {row['flagged']}" if row["flagged"] else "")
+        if row["pose_exchanges"]:
+            note = f"({row['pose_exchanges']} pose exchange(s)) " + note
         if row["count_rule"] == "split":
             note = f"(split from {row['split_from']} after the rigid fit) " + note
         print(f"{kind:>12} {size:>4} {seed:>4} {row['segments']:>4}/{row['true_segments']:<4} "

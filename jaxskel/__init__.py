@@ -64,6 +64,7 @@ _LAZY = {
     "Topology": "_topology",
     "UntestedJoint": "_topology",
     "untested_joints": "_topology",
+    "PoseExchange": "_pose_check",
     "NearTie": "_near_ties",
     "near_ties": "_near_ties",
     "UndeterminedJoint": "_determination",

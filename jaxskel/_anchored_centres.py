@@ -77,6 +77,11 @@ __all__ = ["AnchoredCentres", "anchored_centres"]
 #: One alignment pass of every frame to a fixed reference, compiled once per shape.
 _align = jax.jit(_align_to_reference)
 
+#: At most this many frames enter the generalised Procrustes of the segment poses and
+#: each joint's fit (the pose check, :mod:`jaxskel._pose_check`, poses with the same
+#: shapes, so both share one compiled alignment).
+MAX_FRAMES = 2000
+
 #: A move along a Hessian eigenvector is kept where it is at least this many
 #: resolutions long (module docstring).
 MIN_RESOLUTIONS = 1.0
@@ -269,7 +274,7 @@ def anchored_centres(
     edges: Int[np.ndarray, "J 2"],
     joint_positions: Float[np.ndarray, "F J 3"],
     *,
-    max_frames: int = 2000,
+    max_frames: int = MAX_FRAMES,
     min_resolutions: float = MIN_RESOLUTIONS,
     min_exercise_deg: float = MIN_EXERCISE_DEG,
 ) -> AnchoredCentres:

@@ -343,6 +343,7 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
                 w.tree = tree_problem(
                     w.prep.trial, w.prep.segmentation, pair_costs, root=options["root"], alpha=options["alpha"],
                     alpha_tree=options["alpha_tree"], method=options["method"],
+                    pose_check=w.prep.settings.get("pose_check", True),
                 )
             w.prep.timings["joint costs"] += share
             w.pairs = None  # free the padded arrays

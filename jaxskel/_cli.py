@@ -135,6 +135,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--joint-centres", choices=["anchored", "per_frame"], default="anchored",
                         help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
                              "frame along the directions the data resolve (default), or one per frame (the paper)")
+        sp.add_argument("--no-pose-check", action="store_true",
+                        help="keep the joint costs' spanning tree as it is (the paper); by default a joint "
+                             "between segments of three or more markers that their poses reject is exchanged")
         sp.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
                         help="low-pass filter of the markers the IK poses: a cutoff per marker from its own "
                              "noise (auto, default), none, or a cutoff in Hz")
@@ -223,6 +226,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
         joint_centres=getattr(args, "joint_centres", "anchored"),
         ik_lowpass=getattr(args, "ik_lowpass", "auto"),
+        pose_check=not getattr(args, "no_pose_check", False),
     )
     extra_groups = {}
     if args.parameterize:

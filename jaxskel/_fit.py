@@ -288,6 +288,8 @@ class SkeletonResult:
             lines.append(f"  {_undetermined_text(undetermined, self.joint_name)}")
         for u in self.untested_joints():
             lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
+        for exchange in self.topology.pose_exchanges:
+            lines.append(f"  {_pose_exchange_text(exchange, self.segment_names)}")
         for tie in self.near_ties():
             lines.append(f"  {_near_tie_text(tie, self.segment_names)}")
         nonrigid = _nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
@@ -526,6 +528,17 @@ def _near_tie_text(tie: Any, names: Sequence[str]) -> str:
     )
 
 
+def _pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
+    """One line on a :class:`jaxskel.PoseExchange`."""
+    (a, b), (p, c) = exchange.added, exchange.removed
+    (m_removed, m_added), (c_removed, c_added) = exchange.misfit, exchange.cost
+    return (
+        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: a centre fixed in both "
+        f"segments fits {1e6 * m_added:.1f} against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} "
+        f"against {1e6 * c_removed:.3f} mm^2)"
+    )
+
+
 def _warn_near_ties(ties: list, names: Sequence[str]) -> None:
     """An :class:`AmbiguousTreeWarning` naming the tree joints the costs cannot tell from a rival."""
     if ties:
@@ -573,6 +586,7 @@ def fit_skeleton(
     hinge_centres: str = "limb_plane",
     joint_centres: str = "anchored",
     ik_lowpass: float | str | None = "auto",
+    pose_check: bool = True,
 ) -> SkeletonResult:
     """Fit an articulated skeleton to marker trajectories (Kirk et al. 2005).
 
@@ -633,6 +647,12 @@ def fit_skeleton(
         cutoff for each marker by residual analysis against its own white noise, which
         leaves noiseless or fast markers as they are; a frequency in Hz for every
         marker; or ``None``, no filter. The cutoffs are in ``motion.lowpass_hz``.
+    pose_check
+        Check the tree's joints between segments of three or more markers as points
+        fixed in both segments' poses, and exchange the ones the poses reject
+        (:mod:`jaxskel._pose_check`, ``topology.pose_exchanges``, ``pose check:`` in the
+        summary; CMU 02_05's head from an arm to the thorax). ``False``: the minimum
+        spanning tree of the joint costs as the paper has it.
     """
     check_cutoff(ik_lowpass, allow_none=True)
     if hinge_centres not in HINGE_CENTRES:
@@ -644,7 +664,7 @@ def fit_skeleton(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels,
         alpha=alpha, alpha_tree=alpha_tree, method=method, topology_frames=topology_frames,
         rigid=rigid, ik=ik, seed=seed, confirm_merges=confirm_merges, hinge_centres=hinge_centres,
-        joint_centres=joint_centres, ik_lowpass=ik_lowpass,
+        joint_centres=joint_centres, ik_lowpass=ik_lowpass, pose_check=bool(pose_check),
     )
     stages = ["clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik"]
     bar = None
@@ -818,7 +838,8 @@ def fit_joints_and_skeleton(
         pairs = joint_costs(prep.trial, prep.segmentation, alpha=alpha, max_frames=topology_frames, method=method)
     with prep.stage("tree joints", on_stage):
         topology = fit_topology(
-            prep.trial, prep.segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method
+            prep.trial, prep.segmentation, pairs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method,
+            pose_check=prep.settings.get("pose_check", True),
         )
     return finish_fit(prep, topology, segment_names=segment_names, on_stage=on_stage)
 

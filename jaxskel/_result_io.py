@@ -17,7 +17,9 @@ Schema version 1 (documented in the README, "Result file"):
   ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
   (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
   (n, 2) pairs with ``infeasible_reason`` (n,) str, ``untested``/``untested_std``, ``near_ties`` (t, 3)
-  (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance);
+  (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance); ``fixed_misfit``
+  (S, S), ``pose_exchanges`` (x, 4) (removed pair, added pair) with ``pose_exchanges_values`` (x, 4)
+  (misfit removed, added; joint cost removed, added);
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded, ``resolution`` (J,)
   and ``undetermined`` (u,) joint indices (:mod:`jaxskel._determination`);
@@ -166,6 +168,13 @@ def save_result(
             ties = near_ties(result.trial, seg, topo)
             _put(g, "near_ties", np.asarray([[t.joint, *t.rival] for t in ties], dtype=int).reshape(-1, 3))
             _put(g, "near_ties_margin", np.asarray([[t.margin, t.noise] for t in ties], dtype=float).reshape(-1, 2))
+            if topo.fixed_misfit is not None:
+                _put(g, "fixed_misfit", topo.fixed_misfit)
+            exchanges = topo.pose_exchanges
+            pairs = [[*e.removed, *e.added] for e in exchanges]
+            _put(g, "pose_exchanges", np.asarray(pairs, dtype=int).reshape(-1, 4))
+            values = [[*e.misfit, *e.cost] for e in exchanges]
+            _put(g, "pose_exchanges_values", np.asarray(values, dtype=float).reshape(-1, 4))
 
             g = f.create_group("joints")
             _put(g, "positions", topo.joint_positions)

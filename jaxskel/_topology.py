@@ -12,8 +12,11 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
    infinite cost and a reason: fewer than 4 markers in total, markers never seen
    together, or no relative motion (joint never exercised). :func:`untested_joints`
    names tree attachments that a pair with too few markers could not check.
-2. :func:`fit_topology` — minimum spanning tree over the costs, rooted at the
-   tree's centre (or the user's root); edges parent -> child.
+2. :func:`fit_topology` — minimum spanning tree over the costs; between segments
+   of three or more markers its joints are checked as points fixed in both
+   segments' poses, and one the poses reject is exchanged
+   (:mod:`jaxskel._pose_check`); rooted at the tree's centre (or the user's root);
+   edges parent -> child.
 3. The tree's joints are re-solved on *all* frames, warm-started from the first
    pass, with ``alpha_tree``: 0 (the paper) for well-determined joints, and the
    prior kept for joints the first pass found poorly determined (a hinge's
@@ -40,6 +43,7 @@ from ._jointcost_init import algebraic_start, consistency_start_batched
 from . import _program_cache
 from ._padding import bucket_size
 from ._segment import Segmentation
+from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges
 from ._tree import mst_edges, root_tree, tree_path
 from ._trial import Trial
 
@@ -173,6 +177,11 @@ class Topology:
         (J,) solver diagnostics of the full-frame pass.
     pair_costs
         The all-pairs pass.
+    fixed_misfit
+        (S, S) fixed-centre misfit of every pair of posed segments (m^2, ``inf`` where
+        either has fewer than three markers); see :mod:`jaxskel._pose_check`.
+    pose_exchanges
+        MST edges the pose check replaced (:class:`jaxskel.PoseExchange`).
     """
 
     edges: np.ndarray
@@ -188,6 +197,8 @@ class Topology:
     result: np.ndarray
     converged: np.ndarray
     pair_costs: PairCosts
+    fixed_misfit: np.ndarray | None = None
+    pose_exchanges: tuple[PoseExchange, ...] = ()
 
     @property
     def n_joints(self) -> int:
@@ -580,6 +591,8 @@ class TreeProblem:
     method: str
     max_steps: int
     pair_costs: PairCosts
+    fixed_misfit: np.ndarray
+    pose_exchanges: tuple[PoseExchange, ...]
 
     @property
     def shape_key(self) -> tuple[int, int]:
@@ -601,8 +614,9 @@ def tree_problem(
     alpha_tree: float | str = "auto",
     method: str = "lm",
     max_steps: int = 500,
+    pose_check: bool = True,
 ) -> TreeProblem:
-    """MST, rooting and the padded warm-started arrays of :func:`fit_topology` (no solve)."""
+    """MST, pose check, rooting and the padded warm-started arrays of :func:`fit_topology` (no solve)."""
     seg = _check_segmentation(trial, segmentation)
     s = segmentation.n_segments
     if isinstance(root, str):
@@ -619,6 +633,11 @@ def tree_problem(
             + (f" (and {more} more pairs)" if more > 0 else "")
             + ". Fit a trial in which the joints move, or check the segmentation (n_segments)"
         )
+    x, mask = trial.to_arrays()
+    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES)
+    exchanges: tuple[PoseExchange, ...] = ()
+    if pose_check:
+        undirected, exchanges = pose_checked_edges(undirected, misfit, pair_costs.cost)
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
     if len(roots) > 1:
         warnings.warn(
@@ -641,7 +660,6 @@ def tree_problem(
     # frame costs a full share of each of the hundreds of steps a hinge joint takes.
     f_pad = bucket_size(n_frames, steps_per_octave=4)
     frames = np.arange(n_frames)
-    x, mask = trial.to_arrays()
     xs, ms = pair_arrays(x, mask, seg, np.asarray(key, dtype=int).reshape(-1, 2), frames, k_pad, f_pad)
     # Warm start: first-pass joints interpolated in time, first-pass radii.
     t1 = pair_costs.frames
@@ -656,6 +674,7 @@ def tree_problem(
     return TreeProblem(
         edges=edges, roots=tuple(roots), n_frames=n_frames, alphas=alphas, ks=ks, xs=xs, ms=ms, c0=c0, r0=r0,
         first_steps=first_steps, method=method, max_steps=int(max_steps), pair_costs=pair_costs,
+        fixed_misfit=misfit, pose_exchanges=exchanges,
     )
 
 
@@ -715,6 +734,7 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
             joint_positions=np.zeros((n_frames, 0, 3)), joint_cost=np.zeros(0), radii=(),
             uncertainty=np.zeros(0), undetermined=np.zeros(0, int), alpha=np.zeros(0), steps=np.zeros(0, int),
             result=np.zeros(0, int), converged=np.zeros(0, bool), pair_costs=problem.pair_costs,
+            fixed_misfit=problem.fixed_misfit, pose_exchanges=problem.pose_exchanges,
         )
     valid = sol["valid_frames"][:, :n_frames]
     pos = sol["positions"][:, :n_frames]
@@ -741,6 +761,8 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
         result=np.asarray(sol["result"]),
         converged=converged,
         pair_costs=problem.pair_costs,
+        fixed_misfit=problem.fixed_misfit,
+        pose_exchanges=problem.pose_exchanges,
     )
 
 
@@ -819,6 +841,7 @@ def fit_topology(
     method: str = "lm",
     max_steps: int = 500,
     topology_frames: int = 300,
+    pose_check: bool = True,
 ) -> Topology:
     """MST topology and the tree's joints solved on every frame.
 
@@ -832,6 +855,11 @@ def fit_topology(
         paper) for joints the first pass found fully determined, ``alpha`` for
         joints with an undetermined direction (a hinge's centre slides along its
         axis; the prior then places it nearest the markers, as the paper notes).
+    pose_check
+        Exchange MST joints that the poses of segments with three or more markers
+        reject (:mod:`jaxskel._pose_check`; reported in ``pose_exchanges``). ``False``:
+        the minimum spanning tree of the joint costs as it is (the paper); the misfits
+        are computed either way.
     """
     if pair_costs is None:
         pair_costs = joint_costs(
@@ -839,6 +867,6 @@ def fit_topology(
         )
     problem = tree_problem(
         trial, segmentation, pair_costs, root=root, alpha=alpha, alpha_tree=alpha_tree, method=method,
-        max_steps=max_steps,
+        max_steps=max_steps, pose_check=pose_check,
     )
     return topology_from(problem, solve_trees([problem])[0])

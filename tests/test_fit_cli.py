@@ -64,6 +64,11 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     np.testing.assert_allclose(back.joints.positions, fitted.joint_positions, equal_nan=True)
     assert back.topology.joint_cost.shape == (3, 3) and np.isinf(back.topology.joint_cost[0, 0])
     assert int(back.topology.root) == fitted.topology.root
+    # the pose check: every linkage rod carries three markers, so every pair has a misfit;
+    # the true joints fit (the MST kept), the rods' ends do not
+    np.testing.assert_allclose(back.topology.fixed_misfit, fitted.topology.fixed_misfit)
+    assert np.isfinite(back.topology.fixed_misfit[~np.eye(3, dtype=bool)]).all()
+    assert back.topology.pose_exchanges.shape == (0, 4) == back.topology.pose_exchanges_values.shape
     seg_attrs = dict(back.segments.attrs)
     assert seg_attrs["count_rule"] == fitted.segmentation.count_rule == "eigengap"
     assert seg_attrs["max_segments"] == fitted.segmentation.max_segments
@@ -223,6 +228,11 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     fig = tmp_path / "fig.png"
     assert main(["fit", str(src), "-o", str(out), "--plot", str(fig), "--quiet", "--no-rigid"]) == 0
     assert out.is_file() and fig.stat().st_size > 10_000
+    plain = tmp_path / "plain.h5"
+    assert main(["fit", str(src), "-o", str(plain), "--quiet", "--no-rigid", "--no-pose-check"]) == 0
+    for path, checked in ((out, True), (plain, False)):
+        with h5py.File(path) as f:
+            assert json.loads(f["diagnostics"].attrs["settings"])["pose_check"] is checked
     assert main(["fit", str(src), "-o", str(out), "--quiet", "--no-rigid"]) == 2
     assert "exists" in capsys.readouterr().err
     assert main(["fit", str(src), "-o", str(src), "--quiet", "--overwrite"]) == 2

@@ -132,10 +132,12 @@ def test_cmu_legs_with_automatic_segment_count():
     (pelvis - thigh - shank - foot on both sides). Q / f topology weight: with the
     paper's raw Q the left thigh was jointed to the right shoulder. Both arms hang off
     the thorax (upper arm, then forearm; the right upper arm was on the head before the
-    consistency start of four-marker pairs); the head is jointed to the left upper arm,
-    whose shoulder sweeps 5 degrees in this take (7.06 against 8.72 mm^2 to the thorax,
-    outside the costs' sampling noise: not a near tie, a wrong joint the fit does not
-    name). Against the .asf (printed): left thigh +0 mm, right shank +8 mm, left shank
+    consistency start of four-marker pairs), and so does the head: the joint costs put
+    it on the left upper arm, whose shoulder sweeps 5 degrees in this take (7.06 against
+    8.72 mm^2 to the thorax, whose markers bend with the spine), and the pose check
+    (``jaxskel._pose_check``) moves it to the thorax, where a centre fixed in both
+    segments fits (35 against 898 mm^2). Every joint of the tree is anatomical.
+    Against the .asf (printed): left thigh +0 mm, right shank +8 mm, left shank
     -30 mm, right thigh +74 mm. With the paper's per-frame joint centres the hips sat in
     the plane of the four waist markers and both thighs were 8-9 cm long; asserted: the
     left thigh and one shank within 2 cm, every bone within 2 cm or within the bound the
@@ -158,7 +160,18 @@ def test_cmu_legs_with_automatic_segment_count():
     edges = {frozenset((parts[a], parts[b])) for a, b in result.edges.tolist()}
     arms = {frozenset(p) for s in "LR" for p in (("thorax", f"{s} upper arm"), (f"{s} upper arm", f"{s} forearm"))}
     assert arms <= edges, edges
-    assert all("head" in pair for pair in bad), bad
+    assert frozenset(("thorax", "head")) in edges and bad == [], bad
+    (exchange,) = result.topology.pose_exchanges
+    assert {parts[s] for s in exchange.removed} == {"L upper arm", "head"}
+    assert {parts[s] for s in exchange.added} == {"thorax", "head"}
+    assert exchange.misfit[1] < 0.1 * exchange.misfit[0] and exchange.cost[1] > exchange.cost[0]
+    assert "pose check" in result.summary()
+    # the joint costs' choice, rejected by the poses, is not reported as a rival either
+    assert not [t for t in result.near_ties() if frozenset(t.rival) == frozenset(exchange.removed)]
+    # without the check: the joint costs' tree (the paper's), misfits still reported
+    plain = jaxskel.fit_topology(result.trial, result.segmentation, result.topology.pair_costs, pose_check=False)
+    assert plain.pose_exchanges == () and frozenset(exchange.removed) in {frozenset(e) for e in plain.edges.tolist()}
+    np.testing.assert_array_equal(plain.fixed_misfit, result.topology.fixed_misfit)
     bones = _compare(result, DATA / "timegan_cmu" / "02.asf")
     assert {"L shank", "R shank", "L thigh", "R thigh"} <= set(bones)
     error = {part: abs(fit - ref) for part, (fit, ref, _) in bones.items()}

@@ -102,6 +102,11 @@ def test_full_body_exact_topology(body_fit):
     assert mapped_edges(result, trial, truth) == undirected(truth.edges)
     m = segment_map(result, trial, truth)
     assert truth.segment_names[m[result.topology.root]] in ("pelvis", "torso")
+    # joint costs and segment poses agree on every joint: the pose check exchanges nothing
+    assert result.topology.pose_exchanges == () and "pose check" not in result.summary()
+    posed = np.bincount(result.segmentation.marker_segment, minlength=result.n_segments) >= 3
+    checked = [result.topology.fixed_misfit[p, c] for p, c in result.edges if posed[p] and posed[c]]
+    assert len(checked) == 12 and np.isfinite(checked).all()
     # edges are parent -> child with parents first
     seen = {result.topology.root}
     for p, c in result.edges:

@@ -1,0 +1,126 @@
+"""The pose check of the tree (jaxskel._pose_check): joints as points fixed in both segments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import random_rotation
+
+from jaxskel import PoseExchange, synth
+from jaxskel._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges
+from jaxskel._topology import MIN_PAIR_FRAMES
+
+
+@pytest.fixture(scope="module")
+def body():
+    """Full body, 20 s calibration motion, 1 mm noise, the true segments; every 8th frame."""
+    trial, truth = synth.simulate(synth.full_body(seed=0), duration=20.0, seed=0, noise=0.001)
+    x, mask = trial.to_arrays()
+    return x, mask, truth, np.arange(0, trial.n_frames, 8)
+
+
+def test_true_joints_fit_and_other_pairs_do_not(body):
+    """Measured (seeds 0, 1): the 12 true joints between segments of three or more markers
+    11-13 mm^2 (a few mm of disagreement: noise on a lever arm), the 66 other such pairs
+    2,000 mm^2 or more; the two-marker segments (the hands) have no pose and no misfit."""
+    x, mask, truth, frames = body
+    s = truth.n_segments
+    misfit = fixed_centre_misfit(x, mask, truth.marker_segment, s, frames, MIN_PAIR_FRAMES)
+    sizes = np.bincount(truth.marker_segment, minlength=s)
+    posed = sizes >= 3
+    assert (~posed).sum() == 2 and np.isinf(misfit[~posed]).all() and np.isinf(misfit[:, ~posed]).all()
+    assert np.isinf(np.diag(misfit)).all() and np.array_equal(misfit, misfit.T)
+    true = {frozenset(map(int, e)) for e in truth.edges}
+    joints = [misfit[a, b] for a, b in truth.edges if posed[a] and posed[b]]
+    others = [misfit[a, b] for a in range(s) for b in range(a + 1, s)
+              if posed[a] and posed[b] and frozenset((a, b)) not in true]
+    assert len(joints) == 12 and len(others) == 66
+    assert max(joints) < 50e-6 and min(others) > 500e-6, (max(joints), min(others))
+
+
+def test_misfit_is_invariant_to_pose_and_marker_order(body):
+    x, mask, truth, frames = body
+    s = truth.n_segments
+    misfit = fixed_centre_misfit(x, mask, truth.marker_segment, s, frames, MIN_PAIR_FRAMES)
+    rot = random_rotation(3)
+    moved = np.where(mask[..., None], x @ rot.T + np.array([1.5, -2.0, 0.7]), np.nan)
+    order = np.random.default_rng(4).permutation(x.shape[1])
+    again = fixed_centre_misfit(
+        moved[:, order], mask[:, order], truth.marker_segment[order], s, frames, MIN_PAIR_FRAMES
+    )
+    finite = np.isfinite(misfit)
+    assert np.array_equal(finite, np.isfinite(again))
+    np.testing.assert_allclose(again[finite], misfit[finite], rtol=1e-6)
+
+
+def test_too_few_frames_posing_both_leave_a_pair_unjudged(body):
+    x, mask, truth, frames = body
+    head = truth.segment_names.index("head")
+    hidden = mask.copy()
+    hidden[frames[MIN_PAIR_FRAMES - 1]:, truth.marker_segment == head] = False  # posed in 9 of the frames
+    misfit = fixed_centre_misfit(x, hidden, truth.marker_segment, truth.n_segments, frames, MIN_PAIR_FRAMES)
+    assert np.isinf(misfit[head]).all()
+    assert np.isfinite(misfit[truth.segment_names.index("torso"), truth.segment_names.index("pelvis")])
+
+
+def _graph():
+    """Segments 0-2 posed, 3 not. Joint costs make the MST 0-1, 1-2, 2-3."""
+    cost = np.full((4, 4), np.inf)
+    for (a, b), c in {(0, 1): 1.0, (1, 2): 2.0, (0, 2): 3.0, (2, 3): 1.0, (0, 3): 5.0, (1, 3): 5.0}.items():
+        cost[a, b] = cost[b, a] = c
+    misfit = np.full((4, 4), np.inf)
+    for (a, b), m in {(0, 1): 10.0, (1, 2): 100.0, (0, 2): 5.0}.items():
+        misfit[a, b] = misfit[b, a] = m
+    return np.array([[0, 1], [1, 2], [2, 3]]), misfit, cost
+
+
+def test_poses_overrule_the_joint_costs_between_posed_segments_and_keep_the_rest():
+    edges, misfit, cost = _graph()
+    new, exchanges = pose_checked_edges(edges, misfit, cost)
+    assert new.tolist() == [[0, 1], [0, 2], [2, 3]]  # 2-3 (segment 3 has no pose) is kept
+    assert exchanges == (PoseExchange(removed=(1, 2), added=(0, 2), misfit=(100.0, 5.0), cost=(2.0, 3.0)),)
+
+
+def test_exchanges_repeat_worst_first_until_the_tree_is_settled():
+    """A chain 0-1-2-3 of posed segments whose poses say 0-2, 0-3 and 1-3 are the joints:
+    the worst edge (2-3) goes first, to the best pair across its cut (0-3); then 1-2 to
+    0-2. The result is a tree in which no edge has a rival twice as good."""
+    cost = np.ones((4, 4)) - np.eye(4)
+    misfit = np.full((4, 4), 1000.0)
+    for (a, b), m in {(0, 1): 10.0, (1, 2): 200.0, (2, 3): 400.0, (0, 2): 20.0, (0, 3): 5.0, (1, 3): 40.0}.items():
+        misfit[a, b] = misfit[b, a] = m
+    np.fill_diagonal(misfit, np.inf)
+    new, exchanges = pose_checked_edges(np.array([[0, 1], [1, 2], [2, 3]]), misfit, cost)
+    assert [(e.removed, e.added) for e in exchanges] == [((2, 3), (0, 3)), ((1, 2), (0, 2))]
+    assert new.tolist() == [[0, 1], [0, 2], [0, 3]]
+
+
+def test_poses_that_agree_or_an_infeasible_pair_change_nothing():
+    edges, misfit, cost = _graph()
+    agree = misfit.copy()
+    agree[0, 2] = agree[2, 0] = 500.0
+    new, exchanges = pose_checked_edges(edges, agree, cost)
+    assert new.tolist() == edges.tolist() and exchanges == ()
+    # a rival that fits better, but by less than the factor of two the poses need
+    close = misfit.copy()
+    close[0, 2] = close[2, 0] = 100.0 / MISFIT_FACTOR * 1.01
+    new, exchanges = pose_checked_edges(edges, close, cost)
+    assert new.tolist() == edges.tolist() and exchanges == ()
+    infeasible = cost.copy()
+    infeasible[0, 2] = infeasible[2, 0] = np.inf  # the joint costs found no joint there
+    new, exchanges = pose_checked_edges(edges, misfit, infeasible)
+    assert new.tolist() == edges.tolist() and exchanges == ()
+    unposed = np.full((4, 4), np.inf)
+    new, exchanges = pose_checked_edges(edges, unposed, cost)
+    assert new.tolist() == edges.tolist() and exchanges == ()
+
+
+def test_a_forest_stays_a_forest():
+    """Joint costs that leave two components (infeasible pairs between them): an edge is
+    only ever exchanged within its own component, however well a pair across fits."""
+    cost = np.ones((4, 4)) - np.eye(4)
+    misfit = np.full((4, 4), 1.0)
+    misfit[0, 1] = misfit[1, 0] = misfit[2, 3] = misfit[3, 2] = 100.0
+    np.fill_diagonal(misfit, np.inf)
+    new, exchanges = pose_checked_edges(np.array([[0, 1], [2, 3]]), misfit, cost)
+    assert new.tolist() == [[0, 1], [2, 3]] and exchanges == ()
