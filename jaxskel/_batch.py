@@ -502,6 +502,7 @@ def fit_batch(
     seed: int = 0,
     confirm_merges: bool = True,
     ik_lowpass: float | str | None = "auto",
+    pose_check: bool = True,
     names: Sequence[str] | None = None,
     subjects: Sequence[str] | None = None,
     bones: Mapping[str, Any] | None = None,
@@ -531,7 +532,7 @@ def fit_batch(
     outdir
         Folder for one result file per trial (``<name>.h5``, sub-folders kept) and
         the summary table. Without it, nothing is written and results are returned.
-    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges, ik_lowpass
+    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges, ik_lowpass, pose_check
         As in :func:`jaxskel.fit_skeleton`, the same for every trial.
     names, subjects
         Per-item names (result file names) and subject labels (summary column,
@@ -585,7 +586,7 @@ def fit_batch(
     options = dict(
         n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels, alpha=alpha,
         alpha_tree=alpha_tree, method=method, topology_frames=topology_frames, rigid=rigid, ik=ik, seed=seed,
-        confirm_merges=confirm_merges, ik_lowpass=ik_lowpass,
+        confirm_merges=confirm_merges, ik_lowpass=ik_lowpass, pose_check=bool(pose_check),
     )
     keep = (out is None) if keep_results is None else bool(keep_results)
 

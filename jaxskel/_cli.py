@@ -187,6 +187,8 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("--seed", type=int, default=0)
     batch.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
                        help="low-pass filter of the markers the IK poses (default: auto, from each marker's noise)")
+    batch.add_argument("--no-pose-check", action="store_true",
+                       help="keep the joint costs' spanning tree as it is (the paper)")
     batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -297,6 +299,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
             clean_data=not args.no_clean, merge_labels=merge, method=args.method, rigid=not args.no_rigid,
             ik=not args.no_rigid, seed=args.seed, bones=bones, batch_size=args.batch_size, jobs=args.jobs,
             scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet, ik_lowpass=args.ik_lowpass,
+            pose_check=not args.no_pose_check,
         )
     finally:
         if cluster is not None:

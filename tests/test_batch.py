@@ -132,6 +132,12 @@ def test_cli_fit_batch_local_and_errors(trials, tmp_path, capsys):
     rows = read_csv(out / "summary.csv")
     assert set(rows) == {"subjA/t0", "t1"} and rows["subjA/t0"]["subject"] == "subjA"
     assert (out / "subjA" / "t0.h5").is_file()
+    # the paper's tree on request: the setting reaches every fit (and its completion record)
+    plain = tmp_path / "plain"
+    assert main(["fit-batch", str(src), "-o", str(plain), "--quiet", "--no-rigid", "--no-pose-check"]) == 0
+    for folder, checked in ((out, True), (plain, False)):
+        with h5py.File(folder / "subjA" / "t0.h5") as f:
+            assert json.loads(f["diagnostics"].attrs["settings"])["pose_check"] is checked
     assert main(["fit-batch", str(tmp_path / "nowhere"), "-o", str(out), "--quiet"]) == 2
     assert "not a directory" in capsys.readouterr().err
     assert main(["fit-batch", str(src), "-o", str(out), "--quiet", "--bone", "x=a,b"]) == 2
