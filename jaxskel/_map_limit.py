@@ -43,10 +43,13 @@ def map_usage() -> tuple[int, int] | None:
     return count, limit
 
 
+def _past_release(usage: tuple[int, int] | None) -> bool:
+    return usage is not None and usage[0] >= RELEASE_FRACTION * usage[1]
+
+
 def near_map_limit() -> bool:
     """Whether this process holds more than ``RELEASE_FRACTION`` of its mapping limit."""
-    usage = map_usage()
-    return usage is not None and usage[0] >= RELEASE_FRACTION * usage[1]
+    return _past_release(map_usage())
 
 
 def release_programs_near_map_limit(*, stacklevel: int = 2) -> bool:
@@ -56,7 +59,7 @@ def release_programs_near_map_limit(*, stacklevel: int = 2) -> bool:
     whether the programs were dropped.
     """
     usage = map_usage()
-    if usage is None or usage[0] < RELEASE_FRACTION * usage[1]:
+    if not _past_release(usage):
         return False
     import jax
 

@@ -108,7 +108,7 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -
     mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
     seg = np.asarray(segmentation.marker_segment)
     # pairs the pose check chose against (jaxskel._pose_check): settled by the poses
-    overruled = {frozenset(e.removed) for e in getattr(topology, "pose_exchanges", ())}
+    overruled = {frozenset(e.removed) for e in topology.pose_exchanges}
     out = []
     for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(pc.cost, topology.edges))):
         if rival is None or frozenset(rival) in overruled:
