@@ -339,7 +339,9 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
         try:
             with w.prep.stage("joint costs"):
                 pair_costs = pair_costs_from(w.pairs, sol)
-            with w.prep.stage("tree joints"):
+            # the pose check inside runs JAX code (segment poses): under the lock, like every
+            # other JAX stage, or it overlaps a finishing trial's programs and both hang
+            with w.prep.stage("tree joints"), DEVICE_LOCK:
                 w.tree = tree_problem(
                     w.prep.trial, w.prep.segmentation, pair_costs, root=options["root"], alpha=options["alpha"],
                     alpha_tree=options["alpha_tree"], method=options["method"],
