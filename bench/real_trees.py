@@ -3,7 +3,8 @@
 Each recording is fitted with :func:`jaxskel.fit_skeleton` defaults (no IK) and judged
 with the body-part maps of ``tests/human_markers.py`` (test data; the package never
 reads marker names): ``bad edges`` joins of body parts not adjacent in a human body,
-``misplaced`` markers grouped with a body part they are not on. Printed per recording
+``misplaced`` markers grouped with a body part they are not on (unless the recording
+keeps them rigid with it: a wrist it never bends). Printed per recording
 with the segment count, the groups, the tree and the fit time; HDM_bd's limb bones are
 compared with ``HDM_bd.asf``.
 
@@ -65,7 +66,8 @@ def judge(rel: str, **fit_kwargs) -> dict:
         "parts": parts,
         "edges": [[parts[a] or str(a), parts[b] or str(b)] for a, b in np.asarray(result.edges).tolist()],
         "bad_edges": [list(e) for e in implausible_edges(labels, seg, result.edges)],
-        "misplaced": [list(m) for m in misplaced_markers(labels, seg)],
+        "misplaced": [list(m) for m in misplaced_markers(
+            labels, seg, result.segmentation.distance_std, result.segmentation.rigid_limit)],
         "warnings": sorted({type(w.message).__name__ for w in caught}),
     }
     key = next((k for k in ASF if k in rel), None)

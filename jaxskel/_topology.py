@@ -44,7 +44,7 @@ from . import _program_cache
 from ._padding import bucket_size
 from ._segment import Segmentation
 from ._attachments import Attachment, attachment_tree
-from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges
+from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
 from ._tree import root_tree, tree_path
 from ._trial import Trial
 
@@ -626,6 +626,24 @@ def _centroid_start(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return c, r
 
 
+def _sphere_check_matrices(
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, s: int, frames: np.ndarray,
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray], attachments: Sequence[Attachment],
+) -> tuple[np.ndarray, np.ndarray]:
+    """The second pose check's misfits (:mod:`jaxskel._pose_check`): the anchored sphere
+    misfit of every pair, the better of its two directions, as rivals; judged are only the
+    edges the fixed-centre check cannot judge (a segment of one or two markers). One-marker
+    attachments are leaves by construction and take no part."""
+    directed = sphere_misfit(x, mask, seg, s, frames, MIN_PAIR_FRAMES, poses=poses)
+    sphere = np.minimum(directed, directed.T)
+    hung = [a.segment for a in attachments]
+    sphere[hung, :] = np.inf
+    sphere[:, hung] = np.inf
+    framed = poses[2].any(axis=0)
+    judged = np.where(framed[:, None] & framed[None, :], np.inf, sphere)
+    return sphere, judged
+
+
 def tree_problem(
     trial: Trial,
     segmentation: Segmentation,
@@ -658,10 +676,14 @@ def tree_problem(
             + ". Fit a trial in which the joints move, or check the segmentation (n_segments)"
         )
     x, mask = trial.to_arrays()
-    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES)
+    poses = segment_poses(x, mask, seg, s, pair_costs.frames)
+    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES, poses=poses)
     exchanges: tuple[PoseExchange, ...] = ()
     if pose_check:
         undirected, exchanges = pose_checked_edges(undirected, misfit, pair_costs.cost)
+        sphere, judged = _sphere_check_matrices(x, mask, seg, s, pair_costs.frames, poses, attachments)
+        undirected, more = pose_checked_edges(undirected, sphere, pair_costs.cost, judged=judged, test="sphere")
+        exchanges += more
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
     if len(roots) > 1:
         warnings.warn(

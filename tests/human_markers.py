@@ -122,16 +122,24 @@ def bone_index_by_part(result) -> dict[str, int]:
     return out
 
 
-def misplaced_markers(labels, marker_segment) -> list[tuple[str, str]]:
+def misplaced_markers(labels, marker_segment, distance_std=None, rigid_limit=None) -> list[tuple[str, str]]:
     """Markers grouped with a body part they are not on: ``(marker, segment's part)``.
-    A marker on a joint may sit with either body part of that joint."""
+    A marker on a joint may sit with either body part of that joint. Given the
+    segmentation's ``distance_std`` and ``rigid_limit``, a marker whose median distance
+    std to the markers of the segment's part is within the limit is not counted either:
+    the recording does not move the two parts apart (a wrist it never bends)."""
     names = [lab.split(":")[-1] for lab in labels]
     parts = segment_parts(labels, marker_segment)
+    seg = np.asarray(marker_segment)
     bad = []
-    for n, g in zip(names, np.asarray(marker_segment).tolist()):
+    for i, (n, g) in enumerate(zip(names, seg.tolist())):
         if g < 0 or n not in PART or parts[g] is None or PART[n] == parts[g]:
             continue
         if n in ON_JOINT and frozenset((PART[n], parts[g])) in ADJACENT:
             continue
+        if distance_std is not None:
+            own = [j for j, (m, h) in enumerate(zip(names, seg.tolist())) if h == g and PART.get(m) == parts[g]]
+            if own and np.nanmedian(np.asarray(distance_std)[i, own]) <= rigid_limit:
+                continue
         bad.append((n, parts[g]))
     return bad
