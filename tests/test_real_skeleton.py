@@ -306,3 +306,20 @@ def test_bundled_sample_tree_is_anatomical_with_default_settings():
     assert hosts["RHAND"] == "R forearm" and hosts["LHAND"] == "L forearm"
     for a in result.topology.attachments:  # every one-marker segment is a leaf
         assert sum(a.segment in e for e in result.edges.tolist()) == 1
+
+
+def test_cmu_01_01_tree_is_anatomical_with_default_settings():
+    """CMU subject 01 (the 41-marker set, forward jumps), default settings. The left upper
+    arm carries two markers (LUPA, LELB) and has no pose of its own, so the fixed-centre
+    check could not judge it; the joint costs made it a hub, jointed to the right upper arm
+    and the head (13.4 and 14.2 against 14.6 mm^2 to the thorax). Its markers about a centre
+    fixed in the thorax keep their distances (17 mm^2), about one in the right upper arm or
+    the head they do not (72 and 89 mm^2): the sphere check moves both joints."""
+    from human_markers import misplaced_markers
+
+    result = _fit("c3d_to_xyz_cmu/01_01.c3d", None)
+    labels, seg = result.trial.labels, result.segmentation.marker_segment
+    assert implausible_edges(labels, seg, result.edges) == []
+    assert misplaced_markers(labels, seg, result.segmentation.distance_std, result.segmentation.rigid_limit) == []
+    sphere = [e for e in result.topology.pose_exchanges if e.test == "sphere"]
+    assert len(sphere) >= 2 and all(e.misfit[1] * 2 < e.misfit[0] for e in sphere)
