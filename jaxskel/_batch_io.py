@@ -33,6 +33,7 @@ import numpy as np
 
 from ._atomic import atomic_output
 from ._errors import InputError
+from ._names import names_from_markers
 
 __all__ = [
     "COLUMNS",
@@ -92,7 +93,7 @@ def _normalise_specs(bones: Mapping[str, Any] | None) -> dict[str, tuple[tuple[s
 class _Skeletal:
     """The few arrays bone lengths need, from a SkeletonResult or a result file."""
 
-    def __init__(self, labels, marker_segment, edges, bones, bone_lengths, joint_positions):
+    def __init__(self, labels, marker_segment, edges, bones, bone_lengths, joint_positions, names=None):
         self.segment_of = {str(lab): int(s) for lab, s in zip(labels, marker_segment) if int(s) >= 0}
         self.edges = np.asarray(edges, dtype=int).reshape(-1, 2)
         self.bones = None if bones is None else np.asarray(bones, dtype=int).reshape(-1, 2)
@@ -100,6 +101,10 @@ class _Skeletal:
         self.joint_positions = joint_positions
         self.labels = [str(v) for v in labels]
         self.marker_segment = np.asarray(marker_segment, dtype=int)
+        n_seg = len(self.edges) + 1
+        if names is None or len(names) != n_seg:  # a file without /segments/names
+            names = names_from_markers(self.labels, self.marker_segment, n_seg)
+        self.names = [str(v) for v in names]
 
     @classmethod
     def of(cls, result: Any) -> _Skeletal:
@@ -108,13 +113,13 @@ class _Skeletal:
             return cls(
                 result.segmentation.labels, result.segmentation.marker_segment, result.edges,
                 None if sk is None else sk.bones, None if sk is None else sk.bone_lengths,
-                result.joint_positions,
+                result.joint_positions, result.segment_names,
             )
         sk = result["skeleton"] if "skeleton" in result else None
         return cls(
             result["markers/used_labels"], result["markers/used_segment"], result["topology/edges"],
             None if sk is None else sk.bones, None if sk is None else sk.bone_lengths,
-            result["joints/positions"],
+            result["joints/positions"], result["segments/names"] if "segments/names" in result else None,
         )
 
     def joint_between(self, a: int, b: int) -> int | None:
@@ -161,7 +166,8 @@ def bone_length(result: Any, spec: BoneSpec | tuple[str, str, str]) -> float:
 
 
 def named_bones(result: Any) -> dict[str, float]:
-    """Every bone, keyed ``"S:A-B"`` by the first marker label of each segment (metres)."""
+    """Every bone, keyed ``"S:A-B"`` by the first marker label of each segment (metres);
+    a segment without markers by its name (``segment_names``, :mod:`jaxskel._names`)."""
     sk = _Skeletal.of(result)
     out: dict[str, float] = {}
     n_seg = len(sk.edges) + 1
@@ -174,7 +180,7 @@ def named_bones(result: Any) -> dict[str, float]:
                 nbr = []
                 for j in (joints[i], joints[k]):
                     other = int(sk.edges[j, 0] if sk.edges[j, 1] == s else sk.edges[j, 1])
-                    nbr.append(sk.segment_key(other) if (sk.marker_segment == other).any() else f"seg{other}")
+                    nbr.append(sk.segment_key(other) if (sk.marker_segment == other).any() else sk.names[other])
                 a, b = sorted(nbr)
                 value = sk.length(joints[i], joints[k])
                 out[f"{sk.segment_key(s)}:{a}-{b}"] = round(value, 6) if math.isfinite(value) else None

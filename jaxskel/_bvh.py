@@ -2,7 +2,8 @@
 
 Mapping (a host-side edge of jaxskel; numpy and scipy only):
 
-* Each segment is one BVH joint, named after the segment; the root segment is ``ROOT``.
+* Each segment is one BVH joint, named after the segment (by default from its markers'
+  labels, :mod:`jaxskel._names`); the root segment is ``ROOT``.
   Its node frame is the segment frame moved to the segment's proximal joint (for the
   root: the segment origin, the centroid of its markers), axes unchanged.
 * ``OFFSET`` of a joint is the position of its proximal joint relative to its parent's
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from ._atomic import atomic_output
 from ._errors import InputError
+from ._names import names_from_markers, safe_name
 
 if TYPE_CHECKING:
     from ._ik import Motion
@@ -69,11 +70,6 @@ def _euler(local: np.ndarray, order: str) -> np.ndarray:
         )
 
 
-def _name(label: str) -> str:
-    name = re.sub(r"\s+", "_", str(label).strip())
-    return name or "segment"
-
-
 def export_bvh(
     skeleton: Skeleton,
     motion: Motion,
@@ -98,7 +94,8 @@ def export_bvh(
     units
         ``"m"`` or ``"cm"`` for offsets and root positions.
     labels
-        Segment names (default ``seg0, seg1, ...``); whitespace becomes ``_``.
+        Segment names (default: readable names from the skeleton's marker labels,
+        :func:`jaxskel._names.names_from_markers`); whitespace becomes ``_``.
     rotation_order
         Order of the three rotation channels, a permutation of ``"XYZ"``.
 
@@ -117,7 +114,9 @@ def export_bvh(
     n_seg = skeleton.n_segments
     if motion.rotations.shape[1] != n_seg:
         raise InputError(f"motion has {motion.rotations.shape[1]} segments, the skeleton {n_seg}")
-    names = [f"seg{i}" for i in range(n_seg)] if labels is None else [_name(v) for v in labels]
+    if labels is None:
+        labels = names_from_markers(skeleton.marker_labels, skeleton.marker_segment, n_seg)
+    names = [safe_name(v) for v in labels]
     if len(names) != n_seg or len(set(names)) != n_seg:
         raise InputError(f"labels must be {n_seg} distinct segment names")
     scale = _UNITS[units]

@@ -369,8 +369,10 @@ def _info(path: Path) -> int:
             r = jaxskel.load_result(path)
             print(f"result file {path} (schema {r.attrs['schema_version']}, jaxskel {r.attrs['jaxskel_version']})")
             print(f"  source: {r.attrs['source']}  rate: {r.attrs['rate']} Hz")
+            root = int(r.topology.root)
             print(f"  {len(r.markers.labels)} input markers, {len(r.segments.names)} segments, "
-                  f"{len(r.topology.edges)} joints, root {int(r.topology.root)}")
+                  f"{len(r.topology.edges)} joints, root {r.segments.names[root]} (segment {root})")
+            print(f"  segments: {', '.join(r.segments.names)}")
             print(f"  groups: {', '.join(r.keys())}")
             return 0
     trial = jaxskel.load(path)

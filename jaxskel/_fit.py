@@ -31,6 +31,7 @@ from ._errors import (
 from ._io import _median_extent
 from ._lowpass import check_cutoff
 from ._map_limit import release_programs_near_map_limit
+from ._names import segment_names as default_names
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._split_refit import fit_growing_count
 from ._topology import Topology, fit_topology, joint_costs
@@ -89,7 +90,10 @@ class SkeletonResult:
     skeleton, motion
         Rigid skeleton and inverse-kinematics motion (``None`` when switched off).
     segment_names
-        (S,) names, ``seg0..`` unless given.
+        (S,) unique readable names, from the segments' marker labels unless given
+        (:mod:`jaxskel._names`: ``RTH`` for ``RTHPA, RTHPP, RTHDP, RTHDA``,
+        ``LFWT+RFWT+LBWT+RBWT`` where the labels share no prefix). Display only: no stage
+        of the fit reads them. Joints are named ``parent-child`` from them.
     trial_bounds
         Frame range of each input trial in the combined recording.
     timings
@@ -189,7 +193,7 @@ class SkeletonResult:
         return out
 
     def _bone_name(self, j0: int, j1: int) -> str:
-        """``"seg1 (seg0-seg2)"``: segment seg1 between its joints with seg0 and seg2."""
+        """``"B (A-C)"``: segment B between its joints with segments A and C."""
         names = self.segment_names
         e0, e1 = {int(v) for v in self.edges[j0]}, {int(v) for v in self.edges[j1]}
         shared = (e0 & e1).pop()
@@ -264,8 +268,9 @@ class SkeletonResult:
         if self.cleaning is not None and self.cleaning.duplicates:
             pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
             lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
+        width = max(map(len, self.segment_names), default=0)
         for name, group in zip(self.segment_names, self.segmentation.groups):
-            lines.append(f"  {name:>8}: {', '.join(group)}")
+            lines.append(f"  {name:>{width}}: {', '.join(group)}")
         from ._anchored_centres import MIN_EXERCISE_DEG
 
         anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
@@ -279,7 +284,7 @@ class SkeletonResult:
         for j in range(len(self.edges)):
             t = self.topology
             lines.append(
-                f"  {self.joint_name(j):>17}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
+                f"  {self.joint_name(j):>{max(map(len, map(self.joint_name, range(len(self.edges)))))}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
                 f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {_millimetres(resolution[j])}"
                 + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
                 + ("  undetermined" if j in loose else "")
@@ -617,7 +622,8 @@ def fit_skeleton(
     rigid, ik
         Also fit the rigid skeleton and run inverse kinematics.
     segment_names
-        Optional names for the segments (length S).
+        Names for the segments (length S); default: readable names from their markers'
+        labels (:mod:`jaxskel._names`). Display only.
     progress
         Show a progress bar over the stages.
     confirm_merges
@@ -919,9 +925,7 @@ def finish_fit(
 ) -> SkeletonResult:
     """The stages of :func:`fit_skeleton` after the tree joints: rigid skeleton and IK."""
     segmentation, work = prep.segmentation, prep.trial
-    names = tuple(segment_names) if segment_names is not None else tuple(
-        f"seg{i}" for i in range(segmentation.n_segments)
-    )
+    names = tuple(segment_names) if segment_names is not None else default_names(segmentation.groups)
     if len(names) != segmentation.n_segments:
         raise InputError(
             f"segment_names has {len(names)} names for {segmentation.n_segments} segments"

@@ -2,6 +2,9 @@
 
 * :func:`plot_distance_std` — the distance std-dev matrix A ordered by group:
   dark diagonal blocks are rigid segments.
+
+Segments are labelled by ``result.segment_names`` (readable names from their markers,
+:mod:`jaxskel._names`) and joints ``parent-child`` from them.
 * :func:`plot_spectrum` — the affinity spectrum behind the segment count (eigengap).
 * :func:`plot_joint_costs` — the all-pairs joint-cost matrix with the tree's
   edges marked.
@@ -39,7 +42,8 @@ def _ax(ax: Any, projection: str | None = None) -> Any:
 
 
 def plot_distance_std(result: Any, ax: Any = None) -> Any:
-    """Distance std-dev matrix (mm) with markers ordered by segment."""
+    """Distance std-dev matrix (mm) with markers ordered by segment, each segment's block
+    named along the top."""
     ax = _ax(ax)
     seg = result.segmentation
     order = np.argsort(seg.marker_segment, kind="stable")
@@ -53,6 +57,11 @@ def plot_distance_std(result: Any, ax: Any = None) -> Any:
     for b in bounds:
         ax.axhline(b, color="w", lw=0.6)
         ax.axvline(b, color="w", lw=0.6)
+    ordered = seg.marker_segment[order]
+    shown = [s for s in range(seg.n_segments) if (ordered == s).any()]
+    top = ax.secondary_xaxis("top")
+    top.set_xticks([np.flatnonzero(ordered == s).mean() for s in shown],
+                   [result.segment_names[s] for s in shown], rotation=90, fontsize=5)
     ax.set_title("marker distance std-dev, by segment")
     return ax
 

@@ -8,7 +8,9 @@ Schema version 1 (documented in the README, "Result file"):
   dropped), ``physical`` (M,) int (physical-marker index after label merging,
   identity otherwise, -1 dropped), ``used_labels`` (M',) the markers after
   cleaning/merging, ``positions`` (F, M', 3) the cleaned positions (NaN missing);
-* ``/segments``: ``names`` (S,) str, ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
+* ``/segments``: ``names`` (S,) str (readable names from the markers' labels unless given,
+  :mod:`jaxskel._names`; a file without them is read with them derived the same way),
+  ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
   ``split_markers`` (the flagged markers that grew the count, see :mod:`jaxskel._split_refit`);
   attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / split), ``max_segments``,
   ``rigid_limit`` (metres), ``sigma``, ``white_noise`` (metres), ``split_from`` (the automatic count before it grew, 0 if it did not),
@@ -301,8 +303,26 @@ def _attr(v: Any) -> Any:
     return v
 
 
+def _with_segment_names(result: ResultFile) -> ResultFile:
+    """``result`` with ``/segments/names`` derived from its markers (:mod:`jaxskel._names`)
+    where the file has none."""
+    if "segments" not in result or "names" in result.segments or "markers/used_segment" not in result:
+        return result
+    from ._names import names_from_markers
+
+    n_segments = len(result.segments.sizes) if "sizes" in result.segments else len(result.topology.edges) + 1
+    labels = [str(v) for v in result.markers.used_labels]
+    result.segments._data["names"] = np.asarray(
+        names_from_markers(labels, result.markers.used_segment, n_segments), dtype=object
+    )
+    return result
+
+
 def load_result(path: str | os.PathLike[str]) -> ResultFile:
     """Read a result file written by :meth:`SkeletonResult.save`.
+
+    ``/segments/names`` is always there: a file written without segment names gets them
+    derived from its markers (:mod:`jaxskel._names`).
 
     Raises :class:`InputError` for a missing or non-result file and
     :class:`SchemaError` for a file written by a newer, incompatible jaxskel.
@@ -320,6 +340,6 @@ def load_result(path: str | os.PathLike[str]) -> ResultFile:
                     f"{path}: written with result schema {version}, this jaxskel reads up to "
                     f"{SCHEMA_VERSION}; upgrade jaxskel (pip install -U jaxskel)"
                 )
-            return _read_group(f)
+            return _with_segment_names(_read_group(f))
     except OSError as exc:
         raise InputError(f"{path}: cannot read as HDF5 ({exc})") from None

@@ -6,6 +6,8 @@ these tests isolate the file format.
 
 from __future__ import annotations
 
+import dataclasses
+
 import bvh
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from jaxskel import InputError, synth
 from jaxskel._bvh import export_bvh, read_bvh
 from jaxskel._ik import Motion
+from jaxskel._names import names_from_markers
 from jaxskel._rigid import Skeleton
 
 
@@ -138,6 +141,25 @@ def test_centimetres_and_other_rotation_order_on_a_random_tree(tmp_path):
     _check_round_trip(skeleton, motion, safe, data, 100.0)
     metres = read_bvh(export_bvh(skeleton, motion, tmp_path / "tree_m.bvh", labels=names))
     np.testing.assert_allclose(data.offsets, 100.0 * metres.offsets, atol=1e-6)
+
+
+def test_segments_are_named_from_their_markers_and_the_names_survive_the_round_trip(tmp_path, full_body):
+    """Without labels the joints take the readable names of jaxskel._names (subject prefixes
+    read past), and the independent `bvh` package reads the same names back."""
+    skeleton, motion, _ = full_body
+    prefixed = dataclasses.replace(skeleton, marker_labels=tuple(f"Sam:{v}" for v in skeleton.marker_labels))
+    names = names_from_markers(skeleton.marker_labels, skeleton.marker_segment, skeleton.n_segments)
+    assert names[skeleton.root] == "LASI+RASI+LPSI+RPSI"  # the pelvis: no prefix beyond the side
+    for sk in (skeleton, prefixed):
+        path = export_bvh(sk, motion, tmp_path / "named.bvh", overwrite=True)
+        data = read_bvh(path)
+        assert sorted(data.names) == sorted(names)
+        _check_round_trip(sk, motion, names, data, 1.0)
+        with open(path) as handle:
+            assert sorted(bvh.Bvh(handle.read()).get_joints_names()) == sorted(names)
+    rods, rod_motion, _ = _truth_skeleton_and_motion(synth.linkage())
+    data = read_bvh(export_bvh(rods, rod_motion, tmp_path / "rods.bvh"))
+    assert sorted(data.names) == ["R1M", "R2M", "R3M"]  # R1M1, R1M2, R1M3: their common prefix
 
 
 def test_write_is_atomic_and_refuses_to_overwrite(tmp_path, full_body):

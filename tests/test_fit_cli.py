@@ -14,6 +14,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
+from jaxskel._batch_io import named_bones
 from jaxskel._cli import _machine_cache_dir, main
 
 
@@ -64,6 +65,9 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     np.testing.assert_allclose(back.joints.positions, fitted.joint_positions, equal_nan=True)
     assert back.topology.joint_cost.shape == (3, 3) and np.isinf(back.topology.joint_cost[0, 0])
     assert int(back.topology.root) == fitted.topology.root
+    # segments named from their markers (R1M1, R1M2, R1M3 -> R1M), in the file as in the result
+    assert fitted.segment_names == ("R1M", "R2M", "R3M")
+    assert list(back.segments.names) == list(fitted.segment_names)
     # the pose check: every linkage rod carries three markers, so every pair has a misfit;
     # the true joints fit (the MST kept), the rods' ends do not
     np.testing.assert_allclose(back.topology.fixed_misfit, fitted.topology.fixed_misfit)
@@ -91,6 +95,23 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
         f.attrs["schema_version"] = 99
     with pytest.raises(jaxskel.SchemaError, match="upgrade"):
         jaxskel.load_result(path)
+
+
+def test_a_result_file_without_segment_names_still_loads_with_them(fitted, tmp_path, capsys):
+    """A file written without /segments/names reads back with the names derived from its
+    markers, the same as those written; bones by marker labels and `jaxskel info` work."""
+    path = tmp_path / "old.h5"
+    fitted.save(path)
+    bones = named_bones(jaxskel.load_result(path))
+    with h5py.File(path, "a") as f:
+        del f["segments/names"]
+    back = jaxskel.load_result(path)
+    assert list(back.segments.names) == list(fitted.segment_names)
+    assert named_bones(back) == bones
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    root = fitted.segment_names[fitted.topology.root]
+    assert f"root {root} (segment {fitted.topology.root})" in out and "segments: R1M, R2M, R3M" in out
 
 
 def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, linkage_trial, tmp_path):
@@ -301,7 +322,7 @@ def test_a_segment_no_joint_can_reach_is_named_not_a_crash(linkage_trial):
     apart = trial.replace(positions=x)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the forest's own warning, label merging
-        with pytest.raises(jaxskel.DegenerateMotionError, match=r"1 of the 3 segments.*seg2 \(3 markers\).*rigid=False"):
+        with pytest.raises(jaxskel.DegenerateMotionError, match=r"1 of the 3 segments.*R3M \(3 markers\).*rigid=False"):
             jaxskel.fit_skeleton(apart, merge_labels=False)
         partial = jaxskel.fit_skeleton(apart, merge_labels=False, rigid=False)
     assert partial.n_segments == 3 and len(partial.edges) == 1 and partial.skeleton is None
