@@ -13,6 +13,7 @@ Usage::
     python bench/real_trees.py                 # all recordings below (~6 min on 2 cores)
     python bench/real_trees.py --only 85_12    # names containing a string
     python bench/real_trees.py --json out.json
+    python bench/real_trees.py --markdown docs/bench/real_trees.md
 """
 
 from __future__ import annotations
@@ -86,6 +87,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default="")
     parser.add_argument("--json")
+    parser.add_argument("--markdown", help="write the table (and the groups and trees) here")
     args = parser.parse_args(argv)
     rows = []
     for rel in RECORDINGS:
@@ -104,6 +106,32 @@ def main(argv=None) -> None:
         sys.stdout.flush()
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
+    if args.markdown:
+        Path(args.markdown).write_text(markdown(rows))
+
+
+def markdown(rows: list[dict]) -> str:
+    """The table of :func:`main`'s rows, then each recording's groups and tree."""
+    lines = [
+        "# Trees on real recordings with standard marker sets (`python bench/real_trees.py`)",
+        "",
+        f"Written {time.strftime('%Y-%m-%d')} by `bench/real_trees.py` on a 2-core CPU; `fit_skeleton(trial, ik=False)`",
+        "defaults; edges and groups judged with the body-part maps of `tests/human_markers.py` (test data).",
+        "",
+        "| recording | segments | count rule | implausible joints | misplaced markers | fit s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| `{r['recording']}` | {r['segments']} | {r['count_rule']} | {len(r['bad_edges'])} | "
+                     f"{len(r['misplaced'])} | {r['seconds']} |")
+    for r in rows:
+        lines += ["", f"## `{r['recording']}`", ""]
+        lines += [f"* {p}: {' '.join(g)}" for p, g in zip(r["parts"], r["groups"])]
+        lines.append(f"* tree: {'; '.join(f'{a}-{b}' for a, b in r['edges'])}")
+        lines.append(f"* implausible: {r['bad_edges'] or 'none'}; misplaced: {r['misplaced'] or 'none'}")
+        if "bone_error_mm" in r:
+            lines.append(f"* limb bones against the .asf (fitted - asf, mm): {r['bone_error_mm']}")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -136,8 +136,10 @@ def _parser() -> argparse.ArgumentParser:
                         help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
                              "frame along the directions the data resolve (default), or one per frame (the paper)")
         sp.add_argument("--no-pose-check", action="store_true",
-                        help="keep the joint costs' spanning tree as it is (the paper); by default a joint "
-                             "between segments of three or more markers that their poses reject is exchanged")
+                        help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
+                             "segments as attachments); by default a joint the segments' poses reject (a centre "
+                             "fixed in both, or a sparse segment's markers about a centre fixed in the other) "
+                             "is exchanged")
         sp.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
                         help="low-pass filter of the markers the IK poses: a cutoff per marker from its own "
                              "noise (auto, default), none, or a cutoff in Hz")
@@ -188,7 +190,8 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
                        help="low-pass filter of the markers the IK poses (default: auto, from each marker's noise)")
     batch.add_argument("--no-pose-check", action="store_true",
-                       help="keep the joint costs' spanning tree as it is (the paper)")
+                       help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
+                            "segments as attachments)")
     batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
 

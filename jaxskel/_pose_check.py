@@ -1,4 +1,4 @@
-"""The tree's joints between well-marked segments checked as points fixed in both frames.
+"""The tree's joints checked against the segments' poses: points fixed in both frames.
 
 Kirk et al.'s joint cost (§3.2) gives the joint its own position ``j_f`` in every frame
 and asks only that marker-joint distances stay constant. The relaxation is what lets the
@@ -34,6 +34,20 @@ segment with fewer than three markers, or between segments posed together in too
 frames, are never judged. Each exchange is reported (:class:`PoseExchange`, the
 summary, ``/topology/pose_exchanges``), and the near-tie test
 (:mod:`jaxskel._near_ties`) does not count a rival the poses have rejected.
+
+Segments of one or two markers have no pose, and the check above never judges their
+joints; the joint costs made such a segment a hub where its one or two distances fitted
+several neighbours (CMU 01_01: the left upper arm, LUPA and LELB, jointed to the right
+upper arm, the head and the thorax at 13.4, 14.2 and 14.6 mm^2). A second pass judges
+exactly those edges, with the *anchored sphere misfit* (:func:`sphere_misfit`): how far
+the sparse segment's markers are from keeping constant distances to one centre fixed in
+the other segment's pose (01_01's left upper arm: 17 mm^2 about the thorax, 72 and 89
+mm^2 about the right upper arm and the head). Rivals across the cut are judged by the
+same statistic (the better of a pair's two directions), with the same factor, and
+one-marker attachments (:mod:`jaxskel._attachments`) take no part. Exchanges are
+labelled ``test="sphere"``. On the synthetic sweeps (``bench/sweep_bodies.py``) it
+makes two more random trees exact and changes nothing else; on the real recordings it
+makes CMU 01_01 anatomical and changes no right joint (``bench/real_trees.py``).
 
 Why a margin, and not simply a spanning tree of the misfit: where two segments barely
 turn against each other, any point is nearly fixed in both and the misfit is small

@@ -12,9 +12,11 @@ Kirk et al. 2005, §3.2, as a host-side orchestrator over the JAX joint solver
    infinite cost and a reason: fewer than 4 markers in total, markers never seen
    together, or no relative motion (joint never exercised). :func:`untested_joints`
    names tree attachments that a pair with too few markers could not check.
-2. :func:`fit_topology` — minimum spanning tree over the costs; between segments
-   of three or more markers its joints are checked as points fixed in both
-   segments' poses, and one the poses reject is exchanged
+2. :func:`fit_topology` — minimum spanning tree over the costs, one-marker
+   segments hung as leaves from their most rigid segment (:mod:`jaxskel._attachments`);
+   between segments of three or more markers its joints are checked as points fixed
+   in both segments' poses, edges to segments of one or two markers by those markers
+   about a centre fixed in the other's pose, and one the poses reject is exchanged
    (:mod:`jaxskel._pose_check`); rooted at the tree's centre (or the user's root);
    edges parent -> child.
 3. The tree's joints are re-solved on *all* frames, warm-started from the first
@@ -910,10 +912,16 @@ def fit_topology(
         joints with an undetermined direction (a hinge's centre slides along its
         axis; the prior then places it nearest the markers, as the paper notes).
     pose_check
-        Exchange MST joints that the poses of segments with three or more markers
-        reject (:mod:`jaxskel._pose_check`; reported in ``pose_exchanges``). ``False``:
-        the minimum spanning tree of the joint costs as it is (the paper); the misfits
+        Exchange tree joints the segments' poses reject (:mod:`jaxskel._pose_check`;
+        reported in ``pose_exchanges``): between segments of three or more markers by
+        a centre fixed in both poses, then edges to segments of one or two markers by
+        their markers about a centre fixed in the other's pose. ``False``: the minimum
+        spanning tree of the joint costs as it is (the paper's, with one-marker
+        segments as attachments, :mod:`jaxskel._attachments`); the fixed-centre misfits
         are computed either way.
+
+    One-marker segments hang as leaves from the segment they are most rigid with
+    (``attachments``), never as hubs.
     """
     if pair_costs is None:
         pair_costs = joint_costs(
