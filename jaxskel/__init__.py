@@ -65,6 +65,7 @@ _LAZY = {
     "UntestedJoint": "_topology",
     "untested_joints": "_topology",
     "PoseExchange": "_pose_check",
+    "Attachment": "_attachments",
     "NearTie": "_near_ties",
     "near_ties": "_near_ties",
     "UndeterminedJoint": "_determination",

@@ -65,7 +65,9 @@ import numpy as np
 
 from ._tree import _adjacency, _bfs
 
-__all__ = ["MISFIT_FACTOR", "PoseExchange", "fixed_centre_misfit", "pose_checked_edges"]
+__all__ = [
+    "MISFIT_FACTOR", "PoseExchange", "segment_poses", "fixed_centre_misfit", "sphere_misfit", "pose_checked_edges",
+]
 
 #: The poses overrule the joint costs only where the rival's misfit is below the tree
 #: edge's divided by this: the factor by which jaxskel calls a misfit changed (a centre's
@@ -77,18 +79,81 @@ class PoseExchange(NamedTuple):
     """A joint-cost MST edge the pose check replaced (:func:`pose_checked_edges`).
 
     ``removed`` is the MST's pair, ``added`` the pair the tree joints instead; ``misfit``
-    is their fixed-centre misfits and ``cost`` their joint costs (both m^2, removed first).
+    is their misfits under ``test`` and ``cost`` their joint costs (both m^2, removed
+    first). ``test`` is ``"fixed"`` (a centre fixed in both poses, :func:`fixed_centre_misfit`)
+    or ``"sphere"`` (an edge to a segment of one or two markers: those markers about a
+    centre fixed in the other's pose, :func:`sphere_misfit`).
     """
 
     removed: tuple[int, int]
     added: tuple[int, int]
     misfit: tuple[float, float]
     cost: tuple[float, float]
+    test: str = "fixed"
+
+
+def segment_poses(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``R`` (F, S, 3, 3), ``t`` (F, S, 3), ``posed`` (F, S) on ``frames``: the anchored
+    refit's marker-only poses (``R x + t`` is a marker in its segment's frame), computed
+    on the whole recording with the same compiled alignment, identity where not posed."""
+    from ._anchored_centres import MAX_FRAMES, _segment_poses
+
+    rot, t, posed = (a[frames] for a in _segment_poses(x, mask, marker_segment, n_segments, MAX_FRAMES))
+    rot = np.where(posed[..., None, None], rot, np.eye(3))
+    t = np.where(posed[..., None], t, 0.0)
+    return rot, t, posed
+
+
+def sphere_misfit(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray,
+    min_frames: int, poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """(S, S) anchored sphere misfit (m^2): ``m[a, b]`` is how far ``b``'s markers are from
+    keeping constant distances to one centre fixed in ``a``'s pose,
+
+        m[a, b] = mean_{k in b} var_f |p_kf - c|,   p_kf = R_a(f) x_kf + t_a(f),
+
+    with ``c`` the shared centre of the algebraic sphere fit (|p|^2 = 2 p.c + d_k is
+    linear; with each ``d_k`` eliminated it is the 3 x 3 system sum_k sum_f p~ p~^T c =
+    1/2 sum_k sum_f p~ (|p|^2 - mean |p|^2), p~ = p - mean p, pseudo-inverse: a hinge
+    leaves the centre free along its axis, which changes no variance). It needs a pose
+    of ``a`` only, so it judges joints of segments of one or two markers, which
+    :func:`fixed_centre_misfit` cannot. Directed; ``inf`` where ``a`` has no pose, where
+    a marker of ``b`` is seen with ``a`` posed in fewer than ``min_frames`` of ``frames``,
+    and on the diagonal.
+    """
+    rot, t, posed = poses if poses is not None else segment_poses(x, mask, marker_segment, n_segments, frames)
+    x, mask = x[frames], mask[frames]
+    s = n_segments
+    seg = np.asarray(marker_segment)
+    onehot = (seg[:, None] == np.arange(s)[None]).astype(float)  # (M, S)
+    p = np.einsum("faij,fmj->fami", rot, np.where(mask[..., None], x, 0.0)) + t[:, :, None, :]  # (F, S, M, 3)
+    w = (posed[:, :, None] & mask[:, None, :]).astype(float)  # (F, S, M)
+    n = w.sum(axis=0)  # (S, M)
+    mean_p = np.einsum("fam,famj->amj", w, p) / np.maximum(n, 1)[..., None]
+    sq = np.einsum("famj,famj->fam", p, p)
+    mean_sq = np.einsum("fam,fam->am", w, sq) / np.maximum(n, 1)
+    pc = p - mean_p[None]
+    cov = np.einsum("fam,fami,famj->amij", w, pc, pc)  # (S, M, 3, 3)
+    g = np.einsum("fam,fami,fam->ami", w, pc, sq - mean_sq[None])
+    centre = 0.5 * np.einsum("abij,abj->abi", np.linalg.pinv(np.einsum("amij,mb->abij", cov, onehot)),
+                             np.einsum("ami,mb->abi", g, onehot))  # (S_a, S_b, 3)
+    dist = np.linalg.norm(p - centre[:, seg][None], axis=-1)  # (F, S, M): marker m about c[a, seg[m]]
+    mean_d = np.einsum("fam,fam->am", w, dist) / np.maximum(n, 1)
+    var = np.einsum("fam,fam->am", w, (dist - mean_d[None]) ** 2) / np.maximum(n, 1)
+    counts = np.maximum(onehot.sum(axis=0), 1)
+    misfit = (var @ onehot) / counts[None]
+    enough = ((n < min_frames).astype(float) @ onehot) == 0
+    posed_any = posed.any(axis=0)
+    ok = enough & posed_any[:, None] & ~np.eye(s, dtype=bool) & (onehot.sum(axis=0) > 0)[None]
+    return np.where(ok, misfit, np.inf)
 
 
 def fixed_centre_misfit(
     x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray,
-    min_frames: int,
+    min_frames: int, poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """(S, S) fixed-centre misfit (m^2, module docstring) of every pair of posed segments.
 
@@ -98,12 +163,8 @@ def fixed_centre_misfit(
     than three non-collinear markers) or fewer than ``min_frames`` of those frames pose
     both, and on the diagonal.
     """
-    from ._anchored_centres import MAX_FRAMES, _segment_poses
-
-    rot, t, posed = (a[frames] for a in _segment_poses(x, mask, marker_segment, n_segments, MAX_FRAMES))
+    rot, t, posed = poses if poses is not None else segment_poses(x, mask, marker_segment, n_segments, frames)
     w = posed.astype(float)  # (F, S)
-    rot = np.where(posed[..., None, None], rot, np.eye(3))
-    t = np.where(posed[..., None], t, 0.0)
     n = np.einsum("fa,fb->ab", w, w)
     # World from segment frame: p = R^T (c - t). For a pair, A [c_a; c_b] = q_a - q_b with
     # A = [R_a^T, -R_b^T] and q = R^T t; the normal equations' blocks per pair:
@@ -130,25 +191,28 @@ def fixed_centre_misfit(
 
 
 def pose_checked_edges(
-    edges: np.ndarray, misfit: np.ndarray, cost: np.ndarray, *, factor: float = MISFIT_FACTOR
+    edges: np.ndarray, misfit: np.ndarray, cost: np.ndarray, *, factor: float = MISFIT_FACTOR,
+    judged: np.ndarray | None = None, test: str = "fixed",
 ) -> tuple[np.ndarray, tuple[PoseExchange, ...]]:
     """The MST ``edges`` (E, 2) with the joints the poses reject exchanged (module docstring).
 
-    A tree edge with a finite ``misfit`` is replaced by the lowest-misfit pair across the
-    cut it makes (finite ``cost``, not the edge itself) where that pair's misfit is below
-    the edge's divided by ``factor``; the worst edge first, until none is. Returns the
-    undirected edges (sorted) and the exchanges made.
+    A tree edge with a finite ``judged`` misfit (default ``misfit``) is replaced by the
+    lowest-``misfit`` pair across the cut it makes (finite ``cost``, not the edge itself)
+    where that pair's misfit is below the edge's divided by ``factor``; the worst edge
+    first, until none is. Returns the undirected edges (sorted) and the exchanges made,
+    labelled ``test``.
     """
     tree = [tuple(sorted(map(int, e))) for e in np.asarray(edges, dtype=int).reshape(-1, 2)]
     n = misfit.shape[0]
+    judged_misfit = misfit if judged is None else judged
     usable = np.where(np.isfinite(cost), misfit, np.inf)
     exchanges: list[PoseExchange] = []
     # Each exchange divides one edge's misfit by more than ``factor``, so the product of
     # the judged edges' misfits falls geometrically and the loop ends; the cap only
     # guards against misfits of exactly zero (noise-free input).
     for _ in range(len(tree) * n + 1):
-        judged = sorted((e for e in tree if np.isfinite(misfit[e])), key=lambda e: -misfit[e])
-        for e in judged:
+        order = sorted((e for e in tree if np.isfinite(judged_misfit[e])), key=lambda e: -judged_misfit[e])
+        for e in order:
             adj = _adjacency(n, np.array([f for f in tree if f != e], dtype=int).reshape(-1, 2))
             # the two sides of the cut (within the component: a forest stays a forest)
             side_a, side_b = np.zeros(n, bool), np.zeros(n, bool)
@@ -157,11 +221,11 @@ def pose_checked_edges(
             crossing = np.where(side_a[:, None] & side_b[None, :], usable, np.inf)
             crossing[e[0], e[1]] = np.inf
             a, b = np.unravel_index(np.argmin(crossing), crossing.shape)
-            if crossing[a, b] * factor < misfit[e]:
+            if crossing[a, b] * factor < judged_misfit[e]:
                 new = tuple(sorted((int(a), int(b))))
                 tree[tree.index(e)] = new
-                exchanges.append(PoseExchange(e, new, (float(misfit[e]), float(misfit[new])),
-                                              (float(cost[e]), float(cost[new]))))
+                exchanges.append(PoseExchange(e, new, (float(judged_misfit[e]), float(misfit[new])),
+                                              (float(cost[e]), float(cost[new])), test))
                 break
         else:
             break

@@ -21,7 +21,9 @@ Schema version 1 (documented in the README, "Result file"):
   (n, 2) pairs with ``infeasible_reason`` (n,) str, ``untested``/``untested_std``, ``near_ties`` (t, 3)
   (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance); ``fixed_misfit``
   (S, S), ``pose_exchanges`` (x, 4) (removed pair, added pair) with ``pose_exchanges_values`` (x, 4)
-  (misfit removed, added; joint cost removed, added);
+  (misfit removed, added; joint cost removed, added) and ``pose_exchanges_test`` (x,) str (``fixed`` or
+  ``sphere``, :class:`jaxskel.PoseExchange`), ``attachments`` (a, 3) (one-marker segment, host, bridge or -1)
+  with ``attachments_rigidity`` (a,) metres (:class:`jaxskel.Attachment`);
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded, ``resolution`` (J,)
   and ``undetermined`` (u,) joint indices (:mod:`jaxskel._determination`);
@@ -159,7 +161,7 @@ def save_result(
             _put(g, "roots", np.asarray(topo.roots, dtype=int))
             reasons = topo.pair_costs.reasons
             _put(g, "infeasible", np.asarray(list(reasons.keys()), dtype=int).reshape(-1, 2))
-            _put(g, "infeasible_reason", list(reasons.values()))
+            _put(g, "infeasible_reason", np.asarray(list(reasons.values()), dtype=str))  # str even when empty
             from ._topology import untested_joints
 
             untested = untested_joints(seg, topo)
@@ -177,6 +179,10 @@ def save_result(
             _put(g, "pose_exchanges", np.asarray(pairs, dtype=int).reshape(-1, 4))
             values = [[*e.misfit, *e.cost] for e in exchanges]
             _put(g, "pose_exchanges_values", np.asarray(values, dtype=float).reshape(-1, 4))
+            _put(g, "pose_exchanges_test", np.asarray([e.test for e in exchanges], dtype=str))
+            hung = topo.attachments
+            _put(g, "attachments", np.asarray([[a.segment, a.host, a.bridge] for a in hung], dtype=int).reshape(-1, 3))
+            _put(g, "attachments_rigidity", np.asarray([a.rigidity for a in hung], dtype=float))
 
             g = f.create_group("joints")
             _put(g, "positions", topo.joint_positions)

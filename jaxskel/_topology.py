@@ -43,8 +43,9 @@ from ._jointcost_init import algebraic_start, consistency_start_batched
 from . import _program_cache
 from ._padding import bucket_size
 from ._segment import Segmentation
-from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges
-from ._tree import mst_edges, root_tree, tree_path
+from ._attachments import Attachment, attachment_tree
+from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
+from ._tree import root_tree, tree_path
 from ._trial import Trial
 
 __all__ = [
@@ -182,6 +183,9 @@ class Topology:
         either has fewer than three markers); see :mod:`jaxskel._pose_check`.
     pose_exchanges
         MST edges the pose check replaced (:class:`jaxskel.PoseExchange`).
+    attachments
+        One-marker segments hung as leaves from their most rigid segment
+        (:class:`jaxskel.Attachment`, :mod:`jaxskel._attachments`).
     """
 
     edges: np.ndarray
@@ -199,6 +203,7 @@ class Topology:
     pair_costs: PairCosts
     fixed_misfit: np.ndarray | None = None
     pose_exchanges: tuple[PoseExchange, ...] = ()
+    attachments: tuple[Attachment, ...] = ()
 
     @property
     def n_joints(self) -> int:
@@ -593,6 +598,7 @@ class TreeProblem:
     pair_costs: PairCosts
     fixed_misfit: np.ndarray
     pose_exchanges: tuple[PoseExchange, ...]
+    attachments: tuple[Attachment, ...] = ()
 
     @property
     def shape_key(self) -> tuple[int, int]:
@@ -602,6 +608,40 @@ class TreeProblem:
     def tolerances(self) -> tuple[float | None, float | None]:
         """(rtol, atol) of the solve: ``TREE_RTOL``/``TREE_ATOL`` in float64, else the solver's."""
         return (TREE_RTOL, TREE_ATOL) if self.xs.dtype == np.float64 else (None, None)
+
+
+def _centroid_start(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start of a joint with no first-pass solution: the centroid of its markers present
+    in each frame (held over frames with none), and the median distances to it."""
+    n = m.sum(axis=1, keepdims=True)
+    c = np.where(n > 0, (x * m[..., None]).sum(axis=1) / np.maximum(n, 1), np.nan)
+    seen = np.flatnonzero(n[:, 0] > 0)
+    if seen.size == 0:
+        return np.zeros((len(x), 3)), np.zeros(x.shape[1])
+    idx = np.arange(len(x))
+    c = np.stack([np.interp(idx, seen, c[seen, d]) for d in range(3)], axis=1)
+    d = np.where(m, np.linalg.norm(x - c[:, None], axis=-1), np.nan)
+    with np.errstate(all="ignore"):
+        r = np.nan_to_num(np.nanmedian(d, axis=0))
+    return c, r
+
+
+def _sphere_check_matrices(
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, s: int, frames: np.ndarray,
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray], attachments: Sequence[Attachment],
+) -> tuple[np.ndarray, np.ndarray]:
+    """The second pose check's misfits (:mod:`jaxskel._pose_check`): the anchored sphere
+    misfit of every pair, the better of its two directions, as rivals; judged are only the
+    edges the fixed-centre check cannot judge (a segment of one or two markers). One-marker
+    attachments are leaves by construction and take no part."""
+    directed = sphere_misfit(x, mask, seg, s, frames, MIN_PAIR_FRAMES, poses=poses)
+    sphere = np.minimum(directed, directed.T)
+    hung = [a.segment for a in attachments]
+    sphere[hung, :] = np.inf
+    sphere[:, hung] = np.inf
+    framed = poses[2].any(axis=0)
+    judged = np.where(framed[:, None] & framed[None, :], np.inf, sphere)
+    return sphere, judged
 
 
 def tree_problem(
@@ -624,7 +664,9 @@ def tree_problem(
     if root is not None and not 0 <= int(root) < s:
         raise InputError(f"root segment {root} out of range for {s} segments")
     sizes = np.bincount(seg[seg >= 0], minlength=s)
-    undirected = mst_edges(pair_costs.cost)
+    undirected, attachments, _ = attachment_tree(
+        pair_costs.cost, seg, segmentation.distance_std, pair_costs.too_few_markers
+    )
     if not len(undirected):
         shown = "; ".join(list(pair_costs.reasons.values())[:3])
         more = len(pair_costs.reasons) - 3
@@ -634,10 +676,14 @@ def tree_problem(
             + ". Fit a trial in which the joints move, or check the segmentation (n_segments)"
         )
     x, mask = trial.to_arrays()
-    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES)
+    poses = segment_poses(x, mask, seg, s, pair_costs.frames)
+    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES, poses=poses)
     exchanges: tuple[PoseExchange, ...] = ()
     if pose_check:
         undirected, exchanges = pose_checked_edges(undirected, misfit, pair_costs.cost)
+        sphere, judged = _sphere_check_matrices(x, mask, seg, s, pair_costs.frames, poses, attachments)
+        undirected, more = pose_checked_edges(undirected, sphere, pair_costs.cost, judged=judged, test="sphere")
+        exchanges += more
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
     if len(roots) > 1:
         warnings.warn(
@@ -649,11 +695,14 @@ def tree_problem(
     j = len(edges)
     n_frames = trial.n_frames
     key = [tuple(sorted((int(p), int(c)))) for p, c in edges]
-    undetermined1 = np.array([pair_costs.undetermined[a, b] for a, b in key], dtype=int)
+    # an attachment to a two-marker host has no first-pass solution: prior, centroid start
+    unsolved = np.array([kk not in pair_costs.positions for kk in key], dtype=bool)
+    undetermined1 = np.array([3 if u else pair_costs.undetermined[a, b] for (a, b), u in zip(key, unsolved)], dtype=int)
     if alpha_tree == "auto":
         alphas = np.where(undetermined1 > 0, alpha, 0.0)
     else:
         alphas = np.full(j, float(alpha_tree))
+    alphas = np.where(unsolved & (alphas <= 0), alpha, alphas)  # only the prior places those
     ks = np.array([int(sizes[a] + sizes[b]) for a, b in key], dtype=int)
     k_pad = bucket_size(int(ks.max(initial=4)), minimum=4, steps_per_octave=1)
     # Four sizes per octave (<= 19 % padding, against 41 % with two): every padded
@@ -666,6 +715,9 @@ def tree_problem(
     c0 = np.zeros((j, f_pad, 3))
     r0 = np.zeros((j, k_pad))
     for i, kk in enumerate(key):
+        if unsolved[i]:
+            c0[i, :n_frames], r0[i, : ks[i]] = _centroid_start(xs[i, :n_frames, : ks[i]], ms[i, :n_frames, : ks[i]])
+            continue
         p1 = pair_costs.positions[kk]
         for d in range(3):
             c0[i, :n_frames, d] = np.interp(frames, t1, p1[:, d])
@@ -674,7 +726,7 @@ def tree_problem(
     return TreeProblem(
         edges=edges, roots=tuple(roots), n_frames=n_frames, alphas=alphas, ks=ks, xs=xs, ms=ms, c0=c0, r0=r0,
         first_steps=first_steps, method=method, max_steps=int(max_steps), pair_costs=pair_costs,
-        fixed_misfit=misfit, pose_exchanges=exchanges,
+        fixed_misfit=misfit, pose_exchanges=exchanges, attachments=attachments,
     )
 
 
@@ -735,6 +787,7 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
             uncertainty=np.zeros(0), undetermined=np.zeros(0, int), alpha=np.zeros(0), steps=np.zeros(0, int),
             result=np.zeros(0, int), converged=np.zeros(0, bool), pair_costs=problem.pair_costs,
             fixed_misfit=problem.fixed_misfit, pose_exchanges=problem.pose_exchanges,
+            attachments=problem.attachments,
         )
     valid = sol["valid_frames"][:, :n_frames]
     pos = sol["positions"][:, :n_frames]
@@ -763,6 +816,7 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
         pair_costs=problem.pair_costs,
         fixed_misfit=problem.fixed_misfit,
         pose_exchanges=problem.pose_exchanges,
+        attachments=problem.attachments,
     )
 
 

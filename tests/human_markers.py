@@ -1,4 +1,8 @@
-"""Body parts of the 41-marker Vicon set of CMU and HDM05, and their .asf skeletons.
+"""Body parts of the standard marker sets in the shared recordings, and the .asf skeletons.
+
+Sets: the 41-marker Vicon set of CMU and HDM05, and Clouthier et al.'s 62-marker cluster
+set (``auto_marker_label``: four-marker limb clusters, head, back, pelvis, acromion,
+wrist, hand, ankle and foot markers).
 
 Used to judge a fitted tree on real recordings without ground-truth segment
 labels: a segment is named after the body part most of its markers sit on, and an
@@ -15,7 +19,19 @@ import numpy as np
 #: shoulder) move rigidly with either neighbour; they only name a segment that has
 #: no other marker.
 PART: dict[str, str] = {"C7": "thorax", "T10": "thorax", "CLAV": "thorax", "STRN": "thorax", "RBAC": "thorax"}
-ON_JOINT = {"KNE", "ANK", "ELB", "WRA", "WRB", "SHO"}
+ON_JOINT: set[str] = set()
+for _s in "LR":
+    ON_JOINT |= {f"{_s}{j}" for j in ("KNE", "ANK", "ELB", "WRA", "WRB", "SHO", "AC", "RAD", "ULN", "ANL")}
+# Clouthier's cluster set
+PART.update({"FHD": "head", "RHD": "head", "BHD": "head", "LHD": "head"})
+PART.update({f"LB{v}{h}": "thorax" for v in "UL" for h in "LR"})
+PART.update({f"PV{v}{h}": "pelvis" for v in "UL" for h in "LR"})
+for _s in "LR":
+    PART.update({f"{_s}AC": f"{_s} shoulder", f"{_s}RAD": f"{_s} forearm", f"{_s}ULN": f"{_s} forearm",
+                 f"{_s}HAND": f"{_s} hand", f"{_s}ANL": f"{_s} shank"})
+    for cluster, part in (("UA", "upper arm"), ("FA", "forearm"), ("TH", "thigh"), ("SH", "shank")):
+        PART.update({f"{_s}{cluster}{pd}{ap}": f"{_s} {part}" for pd in "PD" for ap in "AP"})
+    PART.update({f"{_s}{m}": f"{_s} foot" for m in ("HEE", "FTB", "FTM", "FTF")})
 for _s in "LR":
     PART.update({
         f"{_s}FHD": "head", f"{_s}BHD": "head", f"{_s}SHO": f"{_s} shoulder",
@@ -41,7 +57,7 @@ def segment_parts(labels, marker_segment) -> list[str | None]:
     parts = []
     for s in range(int(np.max(marker_segment)) + 1):
         mine = [n for n, g in zip(names, marker_segment) if g == s and n in PART]
-        votes = [PART[n] for n in mine if n[1:] not in ON_JOINT] or [PART[n] for n in mine]
+        votes = [PART[n] for n in mine if n not in ON_JOINT] or [PART[n] for n in mine]
         parts.append(max(sorted(set(votes)), key=votes.count) if votes else None)
     return parts
 
@@ -104,3 +120,26 @@ def bone_index_by_part(result) -> dict[str, int]:
         if ends & set(proximal) and distal in ends:
             out[part] = b
     return out
+
+
+def misplaced_markers(labels, marker_segment, distance_std=None, rigid_limit=None) -> list[tuple[str, str]]:
+    """Markers grouped with a body part they are not on: ``(marker, segment's part)``.
+    A marker on a joint may sit with either body part of that joint. Given the
+    segmentation's ``distance_std`` and ``rigid_limit``, a marker whose median distance
+    std to the markers of the segment's part is within the limit is not counted either:
+    the recording does not move the two parts apart (a wrist it never bends)."""
+    names = [lab.split(":")[-1] for lab in labels]
+    parts = segment_parts(labels, marker_segment)
+    seg = np.asarray(marker_segment)
+    bad = []
+    for i, (n, g) in enumerate(zip(names, seg.tolist())):
+        if g < 0 or n not in PART or parts[g] is None or PART[n] == parts[g]:
+            continue
+        if n in ON_JOINT and frozenset((PART[n], parts[g])) in ADJACENT:
+            continue
+        if distance_std is not None:
+            own = [j for j, (m, h) in enumerate(zip(names, seg.tolist())) if h == g and PART.get(m) == parts[g]]
+            if own and np.nanmedian(np.asarray(distance_std)[i, own]) <= rigid_limit:
+                continue
+        bad.append((n, parts[g]))
+    return bad

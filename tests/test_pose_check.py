@@ -7,7 +7,7 @@ import pytest
 from helpers import random_rotation
 
 from jaxskel import PoseExchange, synth
-from jaxskel._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges
+from jaxskel._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
 from jaxskel._topology import MIN_PAIR_FRAMES
 
 
@@ -61,6 +61,66 @@ def test_too_few_frames_posing_both_leave_a_pair_unjudged(body):
     misfit = fixed_centre_misfit(x, hidden, truth.marker_segment, truth.n_segments, frames, MIN_PAIR_FRAMES)
     assert np.isinf(misfit[head]).all()
     assert np.isfinite(misfit[truth.segment_names.index("torso"), truth.segment_names.index("pelvis")])
+
+
+def _sphere_reference(x, mask, seg, s, frames, a, b):
+    """m[a, b] by a plain geometric check: each of b's markers in a's frame, one shared
+    centre from a general least-squares solve of |p|^2 = 2 p.c + d_k (per-marker d_k)."""
+    rot, t, posed = segment_poses(x, mask, seg, s, frames)
+    markers = np.flatnonzero(seg == b)
+    rows, rhs, paths = [], [], []
+    for i, m in enumerate(markers):
+        ok = posed[:, a] & mask[frames, m]
+        p = np.einsum("fij,fj->fi", rot[ok, a], x[frames][ok, m]) + t[ok, a]
+        r = np.zeros((len(p), 3 + len(markers)))
+        r[:, :3], r[:, 3 + i] = 2 * p, 1.0
+        rows.append(r), rhs.append((p**2).sum(1)), paths.append(p)
+    c = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0][:3]
+    return np.mean([np.var(np.linalg.norm(p - c, axis=1)) for p in paths])
+
+
+@pytest.fixture(scope="module")
+def sparse():
+    """One marker per hand, two per forearm and on the head: segments a pose cannot test."""
+    body = synth.full_body(seed=1, markers_per_segment={"l_hand": 1, "r_hand": 1, "l_forearm": 2,
+                                                         "r_forearm": 2, "head": 2})
+    trial, truth = synth.simulate(body, duration=20.0, seed=1, noise=0.001)
+    x, mask = trial.to_arrays()
+    return x, mask, truth, np.arange(0, trial.n_frames, 8)
+
+
+def test_sphere_misfit_judges_joints_of_sparse_segments(sparse):
+    """A segment of one or two markers has no pose; its markers about a centre fixed in
+    the pose of its true neighbour keep their distances (measured 1.4-1.6 mm^2 for the neck
+    and elbows), about any other segment's they do not (65 mm^2 and more). Equal to a
+    plain per-pair solve."""
+    x, mask, truth, frames = sparse
+    s, seg = truth.n_segments, truth.marker_segment
+    m = sphere_misfit(x, mask, seg, s, frames, MIN_PAIR_FRAMES)
+    sizes = np.bincount(seg, minlength=s)
+    posed = sizes >= 3
+    assert np.isinf(m[~posed]).all() and np.isinf(np.diag(m)).all()
+    true = {frozenset(map(int, e)) for e in truth.edges}
+    joints = [m[a, b] for a, b in (*truth.edges, *truth.edges[:, ::-1]) if posed[a] and not posed[b]]
+    others = [m[a, b] for a in range(s) for b in range(s)
+              if posed[a] and not posed[b] and a != b and frozenset((a, b)) not in true]
+    assert len(joints) == 3 and max(joints) < 5e-6 and min(others) > 30e-6, (max(joints), min(others))
+    for a, b in ((0, 1), (int(np.flatnonzero(~posed)[0]), 0), (3, int(np.flatnonzero(~posed)[-1]))):
+        if np.isfinite(m[a, b]):
+            assert m[a, b] == pytest.approx(_sphere_reference(x, mask, seg, s, frames, a, b), rel=1e-6)
+
+
+def test_sphere_misfit_is_invariant_to_pose_and_marker_order(sparse):
+    x, mask, truth, frames = sparse
+    s = truth.n_segments
+    m = sphere_misfit(x, mask, truth.marker_segment, s, frames, MIN_PAIR_FRAMES)
+    rot = random_rotation(5)
+    moved = np.where(mask[..., None], x @ rot.T + np.array([-0.5, 3.0, 1.1]), 0.0)
+    order = np.random.default_rng(7).permutation(x.shape[1])
+    again = sphere_misfit(moved[:, order], mask[:, order], truth.marker_segment[order], s, frames, MIN_PAIR_FRAMES)
+    finite = np.isfinite(m)
+    assert np.array_equal(finite, np.isfinite(again))
+    np.testing.assert_allclose(again[finite], m[finite], rtol=1e-5, atol=1e-12)
 
 
 def _graph():
@@ -124,3 +184,17 @@ def test_a_forest_stays_a_forest():
     np.fill_diagonal(misfit, np.inf)
     new, exchanges = pose_checked_edges(np.array([[0, 1], [2, 3]]), misfit, cost)
     assert new.tolist() == [[0, 1], [2, 3]] and exchanges == ()
+
+
+def test_edges_only_the_sphere_test_can_judge_are_exchanged_with_a_label():
+    """``judged`` limits the edges that may be exchanged; rivals come from ``misfit``."""
+    edges, _, cost = _graph()
+    sphere = np.full((4, 4), np.inf)
+    sphere[2, 3] = sphere[3, 2] = 90.0
+    sphere[0, 3] = sphere[3, 0] = 10.0
+    judged = sphere.copy()
+    new, exchanges = pose_checked_edges(edges, sphere, cost, judged=judged, test="sphere")
+    assert {tuple(e) for e in new.tolist()} == {(0, 1), (1, 2), (0, 3)}
+    assert exchanges == (PoseExchange((2, 3), (0, 3), (90.0, 10.0), (1.0, 5.0), "sphere"),)
+    judged[2, 3] = judged[3, 2] = np.inf  # not judged: kept whatever its misfit
+    assert pose_checked_edges(edges, sphere, cost, judged=judged)[1] == ()

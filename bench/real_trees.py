@@ -1,0 +1,110 @@
+"""Trees on real recordings with standard marker sets, judged by body-part maps.
+
+Each recording is fitted with :func:`jaxskel.fit_skeleton` defaults (no IK) and judged
+with the body-part maps of ``tests/human_markers.py`` (test data; the package never
+reads marker names): ``bad edges`` joins of body parts not adjacent in a human body,
+``misplaced`` markers grouped with a body part they are not on (unless the recording
+keeps them rigid with it: a wrist it never bends). Printed per recording
+with the segment count, the groups, the tree and the fit time; HDM_bd's limb bones are
+compared with ``HDM_bd.asf``.
+
+Usage::
+
+    python bench/real_trees.py                 # all recordings below (~6 min on 2 cores)
+    python bench/real_trees.py --only 85_12    # names containing a string
+    python bench/real_trees.py --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import jaxskel
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from human_markers import (  # noqa: E402
+    asf_bone_lengths, bone_index_by_part, implausible_edges, misplaced_markers, segment_parts,
+)
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+#: Full-body recordings with a standard marker set (issue 42).
+RECORDINGS = (
+    "auto_marker_label/KneeltoProne01.c3d",
+    "auto_marker_label/PronetoRun01.c3d",
+    "nimblephysics/cmu_02_05.c3d",
+    "c3d_to_xyz_cmu/01_01.c3d",
+    "numediart/85_12.c3d",
+    "numediart/HDM_bd_05-01_01_120.c3d",
+    "dynamic_clustering_hdm05/HDM_dg_06-03_03_120.c3d",
+)
+ASF = {"HDM_bd_05": "jointlearning_hdm05/HDM_bd.asf", "HDM_dg_06": "dynamic_clustering_hdm05/HDM_dg.asf",
+       "cmu_02_05": "timegan_cmu/02.asf"}
+ASF_BONES = {"thigh": ("femur",), "shank": ("tibia",), "upper arm": ("humerus",), "forearm": ("radius", "wrist")}
+
+
+def judge(rel: str, **fit_kwargs) -> dict:
+    trial = jaxskel.load(DATA / rel)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(trial, ik=False, **fit_kwargs)
+    seconds = time.perf_counter() - t0
+    labels, seg = result.trial.labels, result.segmentation.marker_segment
+    parts = segment_parts(labels, seg)
+    out = {
+        "recording": rel, "seconds": round(seconds, 1), "segments": int(result.n_segments),
+        "count_rule": result.segmentation.count_rule,
+        "groups": [[lab.split(":")[-1] for lab, g in zip(labels, seg) if g == s] for s in range(result.n_segments)],
+        "parts": parts,
+        "edges": [[parts[a] or str(a), parts[b] or str(b)] for a, b in np.asarray(result.edges).tolist()],
+        "bad_edges": [list(e) for e in implausible_edges(labels, seg, result.edges)],
+        "misplaced": [list(m) for m in misplaced_markers(
+            labels, seg, result.segmentation.distance_std, result.segmentation.rigid_limit)],
+        "warnings": sorted({type(w.message).__name__ for w in caught}),
+    }
+    key = next((k for k in ASF if k in rel), None)
+    if key is not None:
+        reference = asf_bone_lengths(DATA / ASF[key])
+        bones = {}
+        for part, b in bone_index_by_part(result).items():
+            names = [part[0].lower() + bone for bone in ASF_BONES[part[2:]]]
+            if all(n in reference for n in names):
+                bones[part] = round(1e3 * (float(result.skeleton.bone_lengths[b]) - sum(reference[n] for n in names)), 1)
+        out["bone_error_mm"] = bones
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", default="")
+    parser.add_argument("--json")
+    args = parser.parse_args(argv)
+    rows = []
+    for rel in RECORDINGS:
+        if args.only not in rel:
+            continue
+        row = judge(rel)
+        rows.append(row)
+        print(f"\n{rel}: {row['segments']} segments ({row['count_rule']}), {row['seconds']} s, "
+              f"{len(row['bad_edges'])} bad edges, {len(row['misplaced'])} misplaced; {row['warnings']}")
+        for s, (p, g) in enumerate(zip(row["parts"], row["groups"])):
+            print(f"   {s:2d} {p!s:12s} {' '.join(g)}")
+        print("   edges:", "; ".join(f"{a}-{b}" for a, b in row["edges"]))
+        print("   bad:", row["bad_edges"], "misplaced:", row["misplaced"])
+        if "bone_error_mm" in row:
+            print("   bone error vs asf [mm]:", row["bone_error_mm"])
+        sys.stdout.flush()
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
