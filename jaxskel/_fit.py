@@ -278,7 +278,7 @@ class SkeletonResult:
         anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
         resolution = self.joint_resolutions()
         lines += self._joint_lines(anchored, resolution)
-        lines += tree_lines(self.topology, self.segment_names, self.settings)
+        lines += tree_lines(self.topology, self.segment_names, self.settings, self.segmentation)
         loose = [j for j in range(len(self.edges)) if is_loose(resolution[j])]
         if loose:
             lines += [f"  {line}" for line in undetermined_lines(loose, self.segment_names, self.skeleton)]
@@ -536,10 +536,13 @@ def _pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
     """One line on a :class:`jaxskel.PoseExchange`."""
     (a, b), (p, c) = exchange.added, exchange.removed
     (m_removed, m_added), (c_removed, c_added) = exchange.misfit, exchange.cost
+    how = {  # PoseExchange.test
+        "fixed": "a centre fixed in both segments fits",
+        "sphere": "one segment's markers about a centre fixed in the other's pose fit",
+    }.get(getattr(exchange, "test", "fixed"), "the poses fit")
     return (
-        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: a centre fixed in both "
-        f"segments fits {1e6 * m_added:.1f} against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} "
-        f"against {1e6 * c_removed:.3f} mm^2)"
+        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: {how} {1e6 * m_added:.1f} "
+        f"against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} against {1e6 * c_removed:.3f} mm^2)"
     )
 
 

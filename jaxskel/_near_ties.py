@@ -108,8 +108,9 @@ class RivalMargin(NamedTuple):
     margin: float
 
 
-def rival_margins(topology: Any) -> list[RivalMargin]:
-    """Every tree joint's margin over its rival, in the order of ``topology.edges``.
+def rival_margins(topology: Any, cost: np.ndarray | None = None) -> list[RivalMargin]:
+    """Every tree joint's margin over its rival, in the order of ``topology.edges``, by the
+    (S, S) ``cost`` (default the joint costs, ``topology.pair_costs.cost``).
 
     Left out: joints with no finite rival, no finite positive cost, or whose rival the pose
     check chose against (:mod:`jaxskel._pose_check`: the poses settled that pair).
@@ -117,22 +118,27 @@ def rival_margins(topology: Any) -> list[RivalMargin]:
     pc = topology.pair_costs
     if pc is None or not len(topology.edges):
         return []
+    weight = np.asarray(pc.cost if cost is None else cost, dtype=float)
     overruled = {frozenset(e.removed) for e in topology.pose_exchanges}
     out = []
-    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(pc.cost, topology.edges))):
+    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(weight, topology.edges))):
         if rival is None or frozenset(rival) in overruled:
             continue
-        cost, rival_cost = float(pc.cost[p, c]), float(pc.cost[rival])
-        if np.isfinite(cost) and cost > 0:
-            out.append(RivalMargin(j, (int(p), int(c)), rival, cost, rival_cost, rival_cost / cost - 1.0))
+        cost_pc, rival_cost = float(weight[p, c]), float(weight[rival])
+        if np.isfinite(cost_pc) and cost_pc > 0:
+            out.append(RivalMargin(j, (int(p), int(c)), rival, cost_pc, rival_cost, rival_cost / cost_pc - 1.0))
     return out
 
 
-def runner_up(topology: Any) -> RivalMargin | None:
+def runner_up(topology: Any, cost: np.ndarray | None = None) -> RivalMargin | None:
     """The runner-up tree: of the trees that differ from ``topology``'s in one joint, the one
-    whose swapped pair costs the least more, relative to the joint it replaces (the
-    smallest :func:`rival_margins`); ``None`` where no joint has a rival."""
-    return min(rival_margins(topology), key=lambda m: m.margin, default=None)
+    whose swapped pair costs the least more by ``cost``, relative to the joint it replaces
+    (the smallest :func:`rival_margins`); ``None`` where no joint has a rival.
+
+    Given the core's costs of :func:`jaxskel._attachments.attachment_tree` (``inf`` to and
+    from a one-marker segment), the attachments, hung by rigidity and not by cost, neither
+    have a runner-up nor are one."""
+    return min(rival_margins(topology, cost), key=lambda m: m.margin, default=None)
 
 
 def _residual_dof(mask: np.ndarray, marker_segment: np.ndarray, a: int, b: int) -> float:

@@ -24,9 +24,12 @@ way its least determined direction runs (:func:`jaxskel._determination.radial_sh
 * two loose directions, or one in between: both are named.
 
 The tree. The summary says how the tree was chosen (the minimum spanning tree of the joint
-costs, the pose check's exchanges, the root) and how close the runner-up tree came: of the
-trees differing in one joint, the one whose swapped pair costs the least more than the
-joint it replaces (:func:`jaxskel._near_ties.runner_up`, the same rivals as the near ties).
+costs between segments of two or more markers, the one-marker segments hung from their
+most rigid segment, :mod:`jaxskel._attachments`; the pose check's exchanges; the root) and
+how close the runner-up tree came: of the trees differing in one joint chosen by cost,
+the one whose swapped pair costs the least more than the joint it replaces
+(:func:`jaxskel._near_ties.runner_up` on the core's costs: the same rivals as the near
+ties, attachments left out).
 """
 
 from __future__ import annotations
@@ -136,11 +139,22 @@ def undetermined_lines(joints: Sequence[int], names: Sequence[str], skeleton: An
     return lines
 
 
-def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any]) -> list[str]:
-    """How the tree was chosen, and its runner-up (module docstring)."""
-    from ._near_ties import runner_up
+def _core_cost(topology: Any, segmentation: Any) -> np.ndarray:
+    """The (S, S) costs the core's spanning tree was built on (:mod:`jaxskel._attachments`:
+    ``inf`` to and from one-marker segments, pairs an attachment bridges at its cost)."""
+    from ._attachments import attachment_tree
 
-    spanning = "tree" if len(topology.edges) == len(names) - 1 else "forest"
+    pc = topology.pair_costs
+    return attachment_tree(pc.cost, segmentation.marker_segment, segmentation.distance_std, pc.too_few_markers)[2]
+
+
+def _how_chosen(topology: Any, n_segments: int, settings: Mapping[str, Any]) -> str:
+    """The tree line: spanning tree, attachments, pose check, root."""
+    spanning = "tree" if len(topology.edges) == n_segments - 1 else "forest"
+    attached = len(getattr(topology, "attachments", ()))
+    core = "of the joint costs"
+    if attached:
+        core += f" between segments of two or more markers, {attached} one-marker segment(s) hung from the most rigid"
     exchanges = len(topology.pose_exchanges)
     if exchanges:
         check = f"then {exchanges} joint(s) exchanged by the pose check (below)"
@@ -149,10 +163,19 @@ def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any])
     else:
         check = "no pose check"
     rooted = "at its centre" if settings.get("root") is None else "as given"
-    lines = [f"tree: minimum spanning {spanning} of the joint costs, {check}; rooted {rooted}"]
-    best = runner_up(topology)
+    return f"tree: minimum spanning {spanning} {core}, {check}; rooted {rooted}"
+
+
+def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any], segmentation: Any = None) -> list[str]:
+    """How the tree was chosen, and its runner-up (module docstring). With ``segmentation``
+    the runner-up is judged on the costs the core's tree was built on (attachments left
+    out); without it on the joint costs."""
+    from ._near_ties import runner_up
+
+    lines = [_how_chosen(topology, len(names), settings)]
+    best = runner_up(topology, None if segmentation is None else _core_cost(topology, segmentation))
     if best is None:
-        lines.append("  runner-up: none (no joint has another feasible pair across its cut)")
+        lines.append("  runner-up: none (no joint chosen by cost has another feasible pair across its cut)")
         return lines
     (p, c), (a, b) = best.edge, best.rival
     lines.append(

@@ -9,6 +9,8 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
+from jaxskel._attachments import attachment_tree
+from jaxskel._fit import _pose_exchange_text
 from jaxskel._near_ties import rival_edges, runner_up
 from jaxskel._pose_check import PoseExchange
 from jaxskel._summary_text import tree_lines
@@ -103,11 +105,45 @@ def test_the_runner_up_tree_swaps_the_joint_with_the_smallest_margin_and_the_sum
         "tree: minimum spanning tree of the joint costs, then 1 joint(s) exchanged by the pose check (below); "
         "rooted as given"
     )
+    sphere = exchange._replace(test="sphere", misfit=(45e-6, 12.8e-6))
+    assert _pose_exchange_text(sphere, names) == (
+        "pose check: B-C jointed instead of A-C: one segment's markers about a centre fixed in the other's pose fit "
+        "12.8 against 45.0 mm^2 (joint costs 2000000.000 against 5000000.000 mm^2)"
+    )
+    assert "a centre fixed in both segments fits" in _pose_exchange_text(exchange, names)
     alone = SimpleNamespace(edges=edges[:1], pair_costs=SimpleNamespace(cost=cost[:2, :2]), pose_exchanges=())
     assert tree_lines(alone, names[:2], {"pose_check": False}) == [
         "tree: minimum spanning tree of the joint costs, no pose check; rooted at its centre",
-        "  runner-up: none (no joint has another feasible pair across its cut)",
+        "  runner-up: none (no joint chosen by cost has another feasible pair across its cut)",
     ]
+
+
+def test_an_attachment_is_named_in_the_tree_line_and_has_no_runner_up():
+    """Segment 3, one marker, hangs from segment 2 (the most rigid) by rigidity, not cost:
+    its pair with segment 1 is cheaper than the tree's joints (a negative margin on the
+    joint costs) but is no runner-up; on the core's costs (3 left out, 1-2 bridged by 3's cost with 1) the
+    runner-up swaps 0-1 for 0-2 (+400 %)."""
+    inf = np.inf
+    cost = np.array([[inf, 1.0, 5.0, 9.0], [1.0, inf, 2.0, 0.05], [5.0, 2.0, inf, 0.1], [9.0, 0.05, 0.1, inf]])
+    marker_segment = np.array([0, 0, 1, 1, 2, 2, 3])
+    distance_std = np.full((7, 7), 0.05)
+    distance_std[6, 4:6] = distance_std[4:6, 6] = 0.002  # the lone marker moves with segment 2
+    distance_std[6, 2:4] = distance_std[2:4, 6] = 0.01  # then with segment 1
+    segmentation = SimpleNamespace(marker_segment=marker_segment, distance_std=distance_std)
+    edges, attachments, _ = attachment_tree(cost, marker_segment, distance_std)
+    assert attachments[0][:3] == (3, 2, 1)
+    topology = SimpleNamespace(
+        edges=edges, pair_costs=SimpleNamespace(cost=cost, too_few_markers=None), pose_exchanges=(),
+        attachments=attachments,
+    )
+    plain = runner_up(topology)  # the joint costs alone: 1-3, cheaper than the tree's joints
+    assert 3 in plain.rival and plain.margin < 0
+    lines = tree_lines(topology, ("A", "B", "C", "D"), {}, segmentation)
+    assert lines[0] == (
+        "tree: minimum spanning tree of the joint costs between segments of two or more markers, 1 one-marker "
+        "segment(s) hung from the most rigid, the pose check exchanged none; rooted at its centre"
+    )
+    assert lines[1].startswith("  runner-up: A-C instead of A-B, MST weight +400.0 %")
 
 
 def test_disconnected_graph_gives_forest():
