@@ -119,6 +119,13 @@ class AnchoredCentres:
         on a segment they share (median over the anchor's posed frames, returned centres);
         NaN where ``j`` has no anchor or ``i`` shares no segment with it. Row ``j``, column
         ``i``. :mod:`jaxskel._determination` turns it into bone-length uncertainties.
+    radial_cosines
+        (J, 3) how much of each eigenvector (same order as ``resolution``) points from
+        the returned centre to the other segment's markers: ``|v_k . u_m|``, RMS over
+        those markers ``m`` (their median positions in the anchor's frame). Near 1, the
+        direction is the markers' distance from the centre, which a short arc leaves
+        loose; near 0, it runs across them, as the axis of a motion about one axis does.
+        NaN where ``j`` has no anchor.
     cost_per_frame, cost
         (J,) the fixed-centre cost ``C`` (m^2) at the per-frame centres' median and at
         the minimum.
@@ -138,6 +145,7 @@ class AnchoredCentres:
     steps: Int[np.ndarray, " J"]
     result: Int[np.ndarray, " J"]
     bone_cosines: Float[np.ndarray, "J J 3"]
+    radial_cosines: Float[np.ndarray, "J 3"]
 
 
 def _segment_poses(
@@ -298,7 +306,7 @@ def anchored_centres(
     n_sub = min(max_frames, n_frames)
     n_pad = bucket_size(n_sub)
     width = bucket_size(max(int(((seg == a) | (seg == b)).sum()) for a, b in edges) if n_joints else 1, minimum=8)
-    problems, keys = [], []
+    problems, keys, other_local = [], [], []
     for j, (a, b) in enumerate(edges.tolist()):
         markers = np.flatnonzero((seg == a) | (seg == b))
         for anchor in (a, b):
@@ -318,6 +326,7 @@ def anchored_centres(
             other = np.flatnonzero(seg == (b if anchor == a else a))
             problems.append((c0, rot[sel], t[sel], xs, ws))
             keys.append((j, anchor, _sweep_deg(x[frames][:, other], mask[frames][:, other], rot[frames], t[frames], c0)))
+            other_local.append(_median_in_frame(x[frames][:, other], mask[frames][:, other], rot[frames], t[frames]))
 
     out = jp.copy()
     anchor_of = np.full(n_joints, -1)
@@ -330,6 +339,7 @@ def anchored_centres(
     cost = np.full(n_joints, np.nan)
     steps = np.zeros(n_joints, int)
     result = np.zeros(n_joints, int)
+    radial = np.full((n_joints, 3), np.nan)
     if problems:
         c0 = np.stack([p[0] for p in problems])
         c_min, f0, f_min, n_steps, code, lam, vec = _solve_all(problems)
@@ -348,9 +358,11 @@ def anchored_centres(
             keep = (lam[i] > 0) & (np.abs(m) >= min_resolutions * r)
             anchor_of[j], displacement[j], resolution[j] = anchor, m, r
             cost_per_frame[j], cost[j], steps[j], result[j] = f0[i], f_min[i], n_steps[i], code[i]
+            radial[j] = _radial_cosines(other_local[i], c0[i], vec[i])
             if code[i] != 0 or not keep.any() or not exercise[j] >= min_exercise_deg:
                 continue
             c = c0[i] + vec[i][:, keep] @ m[keep]
+            radial[j] = _radial_cosines(other_local[i], c, vec[i])
             rot, t = rot_all[:, anchor], t_all[:, anchor]
             centre = np.einsum("fji,fj->fi", rot, c[None] - t)
             out[:, j] = np.where(posed_all[:, anchor, None], centre, np.nan)
@@ -361,8 +373,34 @@ def anchored_centres(
         bone_cosines = np.full((n_joints, n_joints, 3), np.nan)
     return AnchoredCentres(
         out, anchor_of, moved, shift, exercise, displacement, resolution, cost_per_frame, cost, steps, result,
-        bone_cosines,
+        bone_cosines, radial,
     )
+
+
+def _median_in_frame(
+    x: Float[np.ndarray, "F K 3"], mask: Bool[np.ndarray, "F K"], rot: Float[np.ndarray, "F 3 3"],
+    t: Float[np.ndarray, "F 3"],
+) -> Float[np.ndarray, "K 3"]:
+    """Each marker's median position in the frame ``R x + t`` over the frames that see it
+    (NaN: never seen)."""
+    y = np.einsum("fij,fkj->fki", rot, x) + t[:, None]
+    out = np.full((y.shape[1], 3), np.nan)
+    for k in np.flatnonzero(mask.any(axis=0)):
+        out[k] = np.median(y[mask[:, k], k], axis=0)
+    return out
+
+
+def _radial_cosines(
+    points: Float[np.ndarray, "K 3"], centre: Float[np.ndarray, " 3"], vec: Float[np.ndarray, "3 3"]
+) -> Float[np.ndarray, " 3"]:
+    """:attr:`AnchoredCentres.radial_cosines` of one joint: ``|v_k . u_m|`` for the
+    eigenvectors ``v_k`` (columns of ``vec``) and the unit directions ``u_m`` from
+    ``centre`` to ``points``, RMS over the points (NaN: none)."""
+    d = points[np.isfinite(points).all(axis=1)] - centre
+    if not len(d):
+        return np.full(3, np.nan)
+    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    return np.sqrt(np.mean((u @ vec) ** 2, axis=0))
 
 
 def _bone_cosines(

@@ -28,7 +28,13 @@ how well it fixes the skeleton:
   along the line between them, make the pelvis width unknown but not the thighs;
 * :func:`undetermined_joints`: the joints whose resolution exceeds
   :data:`UNDETERMINED_RESOLUTION` (10 cm), named by the fit (summary, result file and a
-  :class:`jaxskel.DegenerateMotionWarning`).
+  :class:`jaxskel.DegenerateMotionWarning`);
+* :func:`radial_share`, :func:`loose_directions`: which way the least determined
+  direction runs, and how many are loose, and so which motion is missing. Along the
+  line from the centre to the other segment's markers, the arc is too short to fix their
+  distance from the centre (a larger range of rotation would); across it, the recording
+  turns the joint about that direction only, and the centre slides along its axis
+  (rotation about other axes would fix it).
 
 Why 10 cm. It is a scale a user reads directly (a joint placed only to within a hand's
 width is not identified by any standard of biomechanics), and it lies between the two
@@ -63,7 +69,8 @@ import numpy as np
 from ._errors import InputError
 
 __all__ = [
-    "UNDETERMINED_RESOLUTION", "UndeterminedJoint", "bone_uncertainty", "joint_resolution", "undetermined_joints",
+    "UNDETERMINED_RESOLUTION", "UndeterminedJoint", "bone_uncertainty", "joint_resolution", "loose_directions",
+    "radial_share", "undetermined_joints",
 ]
 
 #: A joint whose centre the recording fixes only to within more than this (metres) is
@@ -140,6 +147,29 @@ def bone_uncertainty(skeleton: Any) -> np.ndarray:
     ends = np.stack([along[bones[:, 0], bones[:, 1]], along[bones[:, 1], bones[:, 0]]], axis=1)
     known = np.isfinite(ends).any(axis=1)
     return np.where(known, np.sqrt(np.nansum(ends**2, axis=1)), np.nan)
+
+
+def radial_share(skeleton: Any) -> np.ndarray:
+    """(J,) ``|v . u|`` for each joint's least determined direction that nothing else fixes
+    (the one :func:`joint_resolution` reads) against the directions ``u`` from its centre to
+    the other segment's markers, RMS over them: near 1 the markers' distance from the
+    centre, near 0 an axis across them. NaN where unknown (no fixed-centre fit)."""
+    _require_skeleton(skeleton, "radial_share")
+    n_joints = skeleton.n_joints
+    r, _, placed = _report(skeleton.diagnostics, n_joints)
+    anchored = skeleton.diagnostics.get("anchored") or {}
+    radial = np.asarray(anchored.get("radial_cosines", np.full((n_joints, 3), np.nan)), dtype=float)
+    free = np.where(np.isfinite(r), _free_directions(r, placed), -np.inf)
+    k = np.argmax(free, axis=1)
+    return np.where(np.isfinite(r).all(axis=1), radial.reshape(n_joints, 3)[np.arange(n_joints), k], np.nan)
+
+
+def loose_directions(skeleton: Any, *, limit: float = UNDETERMINED_RESOLUTION) -> np.ndarray:
+    """(J,) how many of each joint's directions that nothing else fixes have a resolution
+    above ``limit`` metres (0 where unknown)."""
+    _require_skeleton(skeleton, "loose_directions")
+    r, _, placed = _report(skeleton.diagnostics, skeleton.n_joints)
+    return np.sum(np.nan_to_num(_free_directions(r, placed), nan=0.0) > limit, axis=1)
 
 
 def undetermined_joints(skeleton: Any, *, limit: float = UNDETERMINED_RESOLUTION) -> list[UndeterminedJoint]:

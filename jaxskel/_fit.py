@@ -34,6 +34,7 @@ from ._map_limit import release_programs_near_map_limit
 from ._names import segment_names as default_names
 from ._segment import Segmentation, combine_trials, segment_markers
 from ._split_refit import fit_growing_count
+from ._summary_text import bone_bound, is_loose, resolution_cell, tree_lines, undetermined_lines
 from ._topology import Topology, fit_topology, joint_costs
 from ._trial import Trial
 
@@ -246,7 +247,10 @@ class SkeletonResult:
         return f"{self.segment_names[p]}-{self.segment_names[c]}"
 
     def summary(self) -> str:
-        """Segments with their markers, joints with their costs, bone lengths."""
+        """Segments with their markers, joints with their costs, how the tree was chosen and
+        its runner-up, bone lengths. A joint the recording fixes only to within more than
+        10 cm reads ``undetermined``, with the motion that would fix it, and so does the
+        bound of a bone ending at it (:mod:`jaxskel._summary_text`)."""
         lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
         seg = self.segmentation
         gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
@@ -271,26 +275,13 @@ class SkeletonResult:
         width = max(map(len, self.segment_names), default=0)
         for name, group in zip(self.segment_names, self.segmentation.groups):
             lines.append(f"  {name:>{width}}: {', '.join(group)}")
-        from ._anchored_centres import MIN_EXERCISE_DEG
-
         anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
-        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
         resolution = self.joint_resolutions()
-        undetermined = self.undetermined_joints()
-        loose = {u.joint for u in undetermined}
-        lines.append(
-            "joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"
-        )
-        for j in range(len(self.edges)):
-            t = self.topology
-            lines.append(
-                f"  {self.joint_name(j):>{max(map(len, map(self.joint_name, range(len(self.edges)))))}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
-                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {_millimetres(resolution[j])}"
-                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
-                + ("  undetermined" if j in loose else "")
-            )
-        if undetermined:
-            lines.append(f"  {_undetermined_text(undetermined, self.joint_name)}")
+        lines += self._joint_lines(anchored, resolution)
+        lines += tree_lines(self.topology, self.segment_names, self.settings, self.segmentation)
+        loose = [j for j in range(len(self.edges)) if is_loose(resolution[j])]
+        if loose:
+            lines += [f"  {line}" for line in undetermined_lines(loose, self.segment_names, self.skeleton)]
         for u in self.untested_joints():
             lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
         for exchange in self.topology.pose_exchanges:
@@ -300,20 +291,7 @@ class SkeletonResult:
         nonrigid = _nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
         if nonrigid is not None:
             lines.append(f"  {nonrigid}")
-        bones = self.bone_lengths()
-        if bones:
-            spread = self.bone_uncertainties()
-            unknown = ~np.isfinite(resolution)  # a bone with such an end has a lower bound only
-            ends = self.skeleton.bones if self.skeleton is not None else ()
-            partial = {self._bone_name(j0, j1) for j0, j1 in ends if unknown[j0] or unknown[j1]}
-            lines.append(
-                "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; "
-                ">= where one joint's is unknown):"
-            )
-            for name, length in bones.items():
-                bound = ">=" if name in partial and np.isfinite(spread.get(name, np.nan)) else "  "
-                extra = f"  {bound}{_millimetres(spread[name])}" if name in spread else ""
-                lines.append(f"  {name}: {length:.4f}{extra}")
+        lines += self._bone_lines(resolution)
         if self.motion is not None:
             rms = np.asarray(self.motion.marker_rms)
             lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
@@ -328,6 +306,43 @@ class SkeletonResult:
         return "\n".join(lines)
 
     __str__ = summary
+
+    def _joint_lines(self, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
+        """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
+        from ._anchored_centres import MIN_EXERCISE_DEG
+
+        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
+        names = [self.joint_name(j) for j in range(len(self.edges))]
+        width = max(map(len, names), default=0)
+        t = self.topology
+        lines = ["joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
+        for j, name in enumerate(names):
+            lines.append(
+                f"  {name:>{width}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
+                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {resolution_cell(resolution[j])}"
+                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
+            )
+        return lines
+
+    def _bone_lines(self, resolution: np.ndarray) -> list[str]:
+        """The summary's bone table: lengths, and bounds where the rigid skeleton has them."""
+        bones = self.bone_lengths()
+        if not bones:
+            return []
+        if self.skeleton is None:
+            return ["bone lengths [m]:"] + [f"  {name}: {length:.4f}" for name, length in bones.items()]
+        from ._determination import bone_uncertainty
+
+        loose = any(is_loose(resolution[j]) for j in np.ravel(self.skeleton.bones))
+        lines = [
+            "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; >= where one "
+            f"joint's is unknown{', undetermined where one joint is' if loose else ''}):"
+        ]
+        spread = bone_uncertainty(self.skeleton)
+        for (j0, j1), bound in zip(self.skeleton.bones, spread):
+            name = self._bone_name(j0, j1)
+            lines.append(f"  {name}: {bones[name]:.4f}  {bone_bound((j0, j1), resolution, bound, self.joint_name)}")
+        return lines
 
     def save(self, path: str, *, overwrite: bool = False, extra_groups: dict[str, Any] | None = None) -> None:
         """Write the HDF5 result file (schema in the README), atomically.
@@ -395,32 +410,16 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
         )
 
 
-def _millimetres(length: float, unit: str = "") -> str:
-    """A length in metres as millimetres (7 wide, ``unit`` appended): ``n/a`` unknown,
-    ``> 10 m`` for a direction nothing fixes (the Hessian is flat along it)."""
-    if not np.isfinite(length):
-        return "    n/a"
-    return "  > 10 m" if length > 10.0 else f"{1000 * length:7.1f}{unit}"
+def _warn_undetermined(skeleton: Any, names: Sequence[str]) -> None:
+    """A :class:`DegenerateMotionWarning` naming the joints the recording fixes only loosely
+    (:func:`jaxskel.undetermined_joints`) and the motion each lacks."""
+    from ._determination import undetermined_joints
 
-
-def _undetermined_text(loose: list, joint_name: Any) -> str:
-    """One line naming the :class:`jaxskel.UndeterminedJoint` s."""
-    from ._determination import UNDETERMINED_RESOLUTION
-
-    items = ", ".join(f"{joint_name(u.joint)} ({_millimetres(u.resolution, ' mm').strip()})" for u in loose)
-    return (
-        f"undetermined: {items}: the recording fixes these centres only to within more than "
-        f"{1000 * UNDETERMINED_RESOLUTION:.0f} mm (the distance along which the fit's misfit doubles), so "
-        "they and the bones ending at them are as uncertain. Where they matter, fit the recording together "
-        "with a range-of-motion trial of the same subject (several inputs to fit_skeleton or jaxskel fit)"
-    )
-
-
-def _warn_undetermined(loose: list, joint_name: Any) -> None:
-    """A :class:`DegenerateMotionWarning` naming the joints the recording fixes only loosely."""
+    loose = undetermined_joints(skeleton)
     if loose:
+        text = undetermined_lines([u.joint for u in loose], names, skeleton)
         warnings.warn(
-            f"{len(loose)} joint(s) {_undetermined_text(loose, joint_name)}",
+            f"{len(loose)} joint(s) " + "\n".join(text),
             DegenerateMotionWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
@@ -537,10 +536,13 @@ def _pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
     """One line on a :class:`jaxskel.PoseExchange`."""
     (a, b), (p, c) = exchange.added, exchange.removed
     (m_removed, m_added), (c_removed, c_added) = exchange.misfit, exchange.cost
+    how = {  # PoseExchange.test
+        "fixed": "a centre fixed in both segments fits",
+        "sphere": "one segment's markers about a centre fixed in the other's pose fit",
+    }.get(getattr(exchange, "test", "fixed"), "the poses fit")
     return (
-        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: a centre fixed in both "
-        f"segments fits {1e6 * m_added:.1f} against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} "
-        f"against {1e6 * c_removed:.3f} mm^2)"
+        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: {how} {1e6 * m_added:.1f} "
+        f"against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} against {1e6 * c_removed:.3f} mm^2)"
     )
 
 
@@ -966,9 +968,7 @@ def finish_fit(
                 skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
                 joint_names = [f"{names[p]}-{names[c]}" for p, c in topology.edges]
                 _warn_unexercised(anchored.exercise, joint_names)
-                from ._determination import undetermined_joints
-
-                _warn_undetermined(undetermined_joints(skeleton), joint_names.__getitem__)
+                _warn_undetermined(skeleton, names)
             nonrigid = _nonrigid_text(skeleton, names, segmentation.n_segments)
             if nonrigid is not None:
                 warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=4)

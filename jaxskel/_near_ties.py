@@ -31,9 +31,13 @@ twice) and 5 right; HDM05 dg none. Synthetic full bodies: none, the closest riva
 standard errors away. A random 12-segment tree's one wrong joint: a 1.5 % margin against
 a 15 % allowance.
 
+However wide, the smallest margin of any joint is the runner-up tree's: of the trees that
+differ from the fit's in one joint, the one whose swapped pair costs the least more
+relative to the joint it replaces (:func:`runner_up`, stated in the summary).
+
 A rival the pose check replaced (:mod:`jaxskel._pose_check`: a centre fixed in both
 segments fits the tree's pair better) is not a near tie: the poses settled it, and the
-summary reports the exchange.
+summary reports the exchange (and neither is it the runner-up).
 
 Tried and not used: the same test on the variance parts alone (the prior taken out),
 which asks whether the data, not the prior, chose the joint. It names the wrong joints
@@ -52,7 +56,7 @@ import numpy as np
 
 from ._tree import _adjacency, _bfs
 
-__all__ = ["NearTie", "near_ties", "rival_edges"]
+__all__ = ["NearTie", "RivalMargin", "near_ties", "rival_edges", "rival_margins", "runner_up"]
 
 
 class NearTie(NamedTuple):
@@ -91,6 +95,52 @@ def rival_edges(cost: np.ndarray, edges: np.ndarray) -> list[tuple[int, int] | N
     return out
 
 
+class RivalMargin(NamedTuple):
+    """A tree joint against its rival (:func:`rival_margins`): ``joint`` indexes
+    ``topology.edges``, ``edge`` is its pair and ``rival`` the cheapest other pair across its
+    cut; ``cost``, ``rival_cost`` their MST weights (m^2), ``margin`` = ``rival_cost / cost - 1``."""
+
+    joint: int
+    edge: tuple[int, int]
+    rival: tuple[int, int]
+    cost: float
+    rival_cost: float
+    margin: float
+
+
+def rival_margins(topology: Any, cost: np.ndarray | None = None) -> list[RivalMargin]:
+    """Every tree joint's margin over its rival, in the order of ``topology.edges``, by the
+    (S, S) ``cost`` (default the joint costs, ``topology.pair_costs.cost``).
+
+    Left out: joints with no finite rival, no finite positive cost, or whose rival the pose
+    check chose against (:mod:`jaxskel._pose_check`: the poses settled that pair).
+    """
+    pc = topology.pair_costs
+    if pc is None or not len(topology.edges):
+        return []
+    weight = np.asarray(pc.cost if cost is None else cost, dtype=float)
+    overruled = {frozenset(e.removed) for e in topology.pose_exchanges}
+    out = []
+    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(weight, topology.edges))):
+        if rival is None or frozenset(rival) in overruled:
+            continue
+        cost_pc, rival_cost = float(weight[p, c]), float(weight[rival])
+        if np.isfinite(cost_pc) and cost_pc > 0:
+            out.append(RivalMargin(j, (int(p), int(c)), rival, cost_pc, rival_cost, rival_cost / cost_pc - 1.0))
+    return out
+
+
+def runner_up(topology: Any, cost: np.ndarray | None = None) -> RivalMargin | None:
+    """The runner-up tree: of the trees that differ from ``topology``'s in one joint, the one
+    whose swapped pair costs the least more by ``cost``, relative to the joint it replaces
+    (the smallest :func:`rival_margins`); ``None`` where no joint has a rival.
+
+    Given the core's costs of :func:`jaxskel._attachments.attachment_tree` (``inf`` to and
+    from a one-marker segment), the attachments, hung by rigidity and not by cost, neither
+    have a runner-up nor are one."""
+    return min(rival_margins(topology, cost), key=lambda m: m.margin, default=None)
+
+
 def _residual_dof(mask: np.ndarray, marker_segment: np.ndarray, a: int, b: int) -> float:
     k = mask[:, (marker_segment == a) | (marker_segment == b)].sum(axis=1)
     return float(np.maximum(k - 3, 0).sum())
@@ -107,20 +157,12 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -
         return []
     mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
     seg = np.asarray(segmentation.marker_segment)
-    # pairs the pose check chose against (jaxskel._pose_check): settled by the poses
-    overruled = {frozenset(e.removed) for e in topology.pose_exchanges}
     out = []
-    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(pc.cost, topology.edges))):
-        if rival is None or frozenset(rival) in overruled:
-            continue
-        cost, rival_cost = float(pc.cost[p, c]), float(pc.cost[rival])
-        if not (np.isfinite(cost) and cost > 0):
-            continue
-        d_joint, d_rival = _residual_dof(mask, seg, p, c), _residual_dof(mask, seg, *rival)
+    for m in rival_margins(topology):
+        d_joint, d_rival = _residual_dof(mask, seg, *m.edge), _residual_dof(mask, seg, *m.rival)
         if d_joint <= 0 or d_rival <= 0:
             continue
         noise = z * float(np.sqrt(2.0 / d_joint + 2.0 / d_rival))
-        margin = rival_cost / cost - 1.0
-        if margin < noise:
-            out.append(NearTie(j, (int(p), int(c)), rival, cost, rival_cost, margin, noise))
+        if m.margin < noise:
+            out.append(NearTie(m.joint, m.edge, m.rival, m.cost, m.rival_cost, m.margin, noise))
     return out

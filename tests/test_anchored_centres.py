@@ -82,6 +82,21 @@ def test_hinge_axis_direction_is_left_alone():
     assert np.sqrt(np.mean(np.sum(off_axis**2, axis=1))) < 0.003  # across: corrected
 
 
+def test_the_weakest_direction_is_read_against_the_markers():
+    """radial_cosines: a hinge leaves its centre loose along its axis, across the lines to
+    B's markers (measured 0.25); a short arc about every axis leaves it loose along them,
+    their distance from the centre (0.96)."""
+    axis = np.array([0.0, 1.0, 0.2]) / np.linalg.norm([0.0, 1.0, 0.2])
+    angles = 0.8 * np.sin(np.linspace(0, 8 * np.pi, 600)) + 0.6
+    x, joint, _ = _recording(angles[:, None] * axis)
+    hinge = _refit(x, joint)
+    x, joint, _ = _recording(_ball(600, 0.1, 3), noise=0.002, seed=3)
+    arc = _refit(x, joint)
+    for out in (hinge, arc):
+        assert out.resolution[0, 0] > 0.1 and np.all((out.radial_cosines >= 0) & (out.radial_cosines <= 1))
+    assert hinge.radial_cosines[0, 0] < 0.4 and arc.radial_cosines[0, 0] > 0.9
+
+
 def test_barely_exercised_joint_is_not_moved():
     """A joint turning 1 degree RMS with 3 mm noise: the fixed-centre minimum is not
     localised, and the per-frame centres (here the truth plus 5 mm) are kept."""

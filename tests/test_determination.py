@@ -14,6 +14,7 @@ import jaxskel
 from jaxskel import synth
 from jaxskel._anchored_centres import MIN_EXERCISE_DEG
 from jaxskel._determination import UNDETERMINED_RESOLUTION
+from jaxskel._summary_text import undetermined_lines
 
 NAN3 = [np.nan] * 3
 
@@ -109,3 +110,89 @@ def test_a_fit_reports_resolutions_and_bounds_on_the_linkage():
     (name,) = result.bone_lengths()
     assert result.bone_uncertainties() == {name: pytest.approx(bound)}
     assert "resolution [mm]" in result.summary() and "undetermined" not in result.summary()
+
+
+def test_the_least_determined_direction_is_read_against_the_markers():
+    """radial_share: the cosine of the weakest free direction with the lines to the other
+    segment's markers (a placed hinge's next direction); loose_directions: how many free
+    directions pass the limit."""
+    res = [[0.30, 0.05, 0.01], [0.40, 0.20, 0.01], [0.50, 0.2, 0.1]]
+    sk = _skeleton(res, _cosines(), placed=[1])
+    sk.diagnostics["anchored"]["radial_cosines"] = np.array([[0.9, 0.1, 0.1], [0.2, 0.3, 0.9], NAN3])
+    np.testing.assert_allclose(jaxskel._determination.radial_share(sk), [0.9, 0.3, np.nan])
+    np.testing.assert_array_equal(jaxskel._determination.loose_directions(sk), [1, 1, 2])
+
+
+@pytest.mark.parametrize(
+    ("resolution", "radial", "exercise", "words"),
+    [
+        ([0.3, 0.05, 0.01], 0.95, 20.0, "needs a larger range of rotation of B about its joint with A: the recorded "
+         "sweep (20.0 deg RMS) is too short an arc to fix how far the centre lies from the markers of B"),
+        ([0.3, 0.05, 0.01], 0.2, 20.0, "needs rotation of B about its joint with A in more directions: the recorded "
+         "sweep (20.0 deg RMS) turns it mainly about one axis, along which the centre can slide"),
+        ([0.3, 0.2, 0.01], 0.95, 20.0, "needs rotation of B about its joint with A over a larger range and in more "
+         "directions: the recorded sweep (20.0 deg RMS) leaves the centre loose along two directions"),
+        ([0.3, 0.05, 0.01], 0.7, 20.0, "loose along a direction neither along nor across its markers"),
+        ([0.3, 0.2, 0.1], 0.95, 1.0, "needs rotation of B about its joint with A: the recording barely turns it "
+         "(sweep 1.0 deg RMS)"),
+    ],
+)
+def test_an_undetermined_joint_is_told_the_motion_it_lacks(resolution, radial, exercise, words):
+    """Two segments A (the anchor) and B: the words follow the weakest direction's reading."""
+    sk = SimpleNamespace(
+        n_joints=1, bones=np.zeros((0, 2), int), edges=np.array([[0, 1]]),
+        diagnostics={"hinge_axis": [NAN3], "anchored": {
+            "resolution": np.array([resolution]), "bone_cosines": np.full((1, 1, 3), np.nan),
+            "exercise": np.array([exercise]), "anchor": np.array([0]), "radial_cosines": np.array([[radial, 0, 0]]),
+        }},
+    )
+    lines = undetermined_lines([0], ("A", "B"), sk)
+    assert lines[0].startswith("undetermined: the recording fixes these centres only to within more than 100 mm")
+    assert lines[1].startswith("  A-B: ") and words in lines[1]
+    assert "range-of-motion trial" in lines[-1]
+
+
+@pytest.fixture(scope="module")
+def short_arc():
+    """The linkage with its second joint turned through 7 % of its range: that joint is
+    undetermined (a 4.5 degree sweep, resolution 142 mm measured), the first is not."""
+    trial, _ = synth.simulate(synth.linkage(), duration=10.0, seed=1, noise=0.001, joint_range={"joint2": 0.07})
+    with pytest.warns(jaxskel.DegenerateMotionWarning, match="undetermined") as caught:
+        result = jaxskel.fit_skeleton(trial, 3)
+    return result, [str(w.message) for w in caught if "undetermined" in str(w.message)]
+
+
+def test_an_undetermined_joint_is_never_printed_as_a_length(short_arc, tmp_path):
+    """The joints table says undetermined instead of the resolution, the bone ending at the
+    joint undetermined instead of its bound, and the summary and warning say which motion
+    is missing; the result file keeps the numbers."""
+    result, (message,) = short_arc
+    (u,) = result.undetermined_joints()
+    name = result.joint_name(u.joint)
+    assert u.resolution > UNDETERMINED_RESOLUTION and name == "R2M-R3M"
+    text = result.summary()
+    row, lack_line = [line for line in text.splitlines() if line.strip().startswith(f"{name}:")]
+    assert row.endswith("undetermined") and f"{1000 * u.resolution:.1f}" not in text
+    (bone,) = [line for line in text.splitlines() if line.startswith("  R2M (")]
+    assert bone.endswith(f"undetermined (joint {name})")
+    assert "> 10 m" not in text and "10 m" not in message
+    lack = (f"{name}: needs a larger range of rotation of R3M about its joint with R2M: the recorded sweep "
+            f"({result.skeleton.diagnostics['anchored']['exercise'][u.joint]:.1f} deg RMS) is too short an arc")
+    assert lack_line.strip().startswith(lack) and lack in message
+    (other,) = {0, 1} - {u.joint}
+    assert f"{1000 * result.joint_resolutions()[other]:7.1f}" in text  # a determined joint keeps its number
+    result.save(tmp_path / "r.h5")
+    back = jaxskel.load_result(tmp_path / "r.h5")
+    np.testing.assert_allclose(back.joints.resolution, result.joint_resolutions())
+    assert back.joints.undetermined.tolist() == [u.joint]
+
+
+def test_the_summary_says_how_the_tree_was_chosen_and_how_close_the_runner_up_came(short_arc):
+    result, _ = short_arc
+    text = result.summary()
+    assert "tree: minimum spanning tree of the joint costs, the pose check exchanged none; rooted at its centre" in text
+    best = jaxskel._near_ties.runner_up(result.topology)
+    (p, c), (a, b) = best.edge, best.rival
+    names = result.segment_names
+    swap = f"{names[a]}-{names[b]} instead of {names[p]}-{names[c]}"
+    assert f"runner-up: {swap}, MST weight {100 * best.margin:+.1f} %" in text

@@ -165,7 +165,10 @@ def test_cmu_legs_with_automatic_segment_count():
     assert {parts[s] for s in exchange.removed} == {"L upper arm", "head"}
     assert {parts[s] for s in exchange.added} == {"thorax", "head"}
     assert exchange.misfit[1] < 0.1 * exchange.misfit[0] and exchange.cost[1] > exchange.cost[0]
-    assert "pose check" in result.summary()
+    text = result.summary()
+    exchanges = len(result.topology.pose_exchanges)
+    assert f"then {exchanges} joint(s) exchanged by the pose check (below)" in text
+    assert text.count("\n  pose check: ") == exchanges
     # the joint costs' choice, rejected by the poses, is not reported as a rival either
     assert not [t for t in result.near_ties() if frozenset(t.rival) == frozenset(exchange.removed)]
     # without the check: the joint costs' tree (the paper's), misfits still reported

@@ -1,5 +1,7 @@
 """Joint costs, MST topology and full-frame joints (Kirk et al. §3.2) on synthetic ground truth."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from helpers import off_axis_rmse, partition, random_rotation, segment_map, true_partition
@@ -7,7 +9,11 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._near_ties import rival_edges
+from jaxskel._attachments import attachment_tree
+from jaxskel._fit import _pose_exchange_text
+from jaxskel._near_ties import rival_edges, runner_up
+from jaxskel._pose_check import PoseExchange
+from jaxskel._summary_text import tree_lines
 from jaxskel._tree import mst_edges, root_tree, tree_path
 
 
@@ -64,6 +70,80 @@ def test_rival_edges_are_the_cheapest_pairs_across_each_cut():
     assert {k: tuple(sorted(v)) for k, v in rivals.items()} == {(0, 1): (0, 2), (1, 2): (0, 2), (2, 3): (1, 3)}
     cost[0, 2] = cost[2, 0] = inf  # no other pair reaches segment 0
     assert rival_edges(cost, edges)[0] is None
+
+
+def test_the_runner_up_tree_swaps_the_joint_with_the_smallest_margin_and_the_summary_says_so():
+    """Of the trees differing in one joint, the runner-up swaps the joint whose rival costs the
+    least more, relatively (1-2 -> 0-2: +150 %; 0-1 -> 0-2 is +400 %, 2-3 -> 1-3 +1700 %); a
+    rival the pose check overruled is passed over, and the summary's tree line says how the
+    tree was chosen."""
+    inf = np.inf
+    cost = np.array(
+        [
+            [inf, 1.0, 5.0, inf],
+            [1.0, inf, 2.0, 9.0],
+            [5.0, 2.0, inf, 0.5],
+            [inf, 9.0, 0.5, inf],
+        ]
+    )
+    edges = np.array([[0, 1], [1, 2], [2, 3]])
+    topology = SimpleNamespace(edges=edges, pair_costs=SimpleNamespace(cost=cost), pose_exchanges=())
+    best = runner_up(topology)
+    assert (best.joint, best.edge, tuple(sorted(best.rival))) == (1, (1, 2), (0, 2))
+    assert best.margin == pytest.approx(1.5)
+    names = ("A", "B", "C", "D")
+    assert tree_lines(topology, names, {"root": None}) == [
+        "tree: minimum spanning tree of the joint costs, the pose check exchanged none; rooted at its centre",
+        "  runner-up: A-C instead of B-C, MST weight +150.0 % (5000000.000 against 2000000.000 mm^2): the "
+        "smallest margin of any joint over the cheapest other pair across its cut",
+    ]
+    exchange = PoseExchange(removed=(0, 2), added=(1, 2), misfit=(1.0, 0.1), cost=(5.0, 2.0))
+    checked = SimpleNamespace(edges=edges, pair_costs=SimpleNamespace(cost=cost), pose_exchanges=(exchange,))
+    assert runner_up(checked).edge == (2, 3)  # 0-2, the rival of 0-1 and 1-2, was overruled: 2-3 -> 1-3
+    lines = tree_lines(checked, names, {"root": 0, "pose_check": True})
+    assert lines[0] == (
+        "tree: minimum spanning tree of the joint costs, then 1 joint(s) exchanged by the pose check (below); "
+        "rooted as given"
+    )
+    sphere = exchange._replace(test="sphere", misfit=(45e-6, 12.8e-6))
+    assert _pose_exchange_text(sphere, names) == (
+        "pose check: B-C jointed instead of A-C: one segment's markers about a centre fixed in the other's pose fit "
+        "12.8 against 45.0 mm^2 (joint costs 2000000.000 against 5000000.000 mm^2)"
+    )
+    assert "a centre fixed in both segments fits" in _pose_exchange_text(exchange, names)
+    alone = SimpleNamespace(edges=edges[:1], pair_costs=SimpleNamespace(cost=cost[:2, :2]), pose_exchanges=())
+    assert tree_lines(alone, names[:2], {"pose_check": False}) == [
+        "tree: minimum spanning tree of the joint costs, no pose check; rooted at its centre",
+        "  runner-up: none (no joint chosen by cost has another feasible pair across its cut)",
+    ]
+
+
+def test_an_attachment_is_named_in_the_tree_line_and_has_no_runner_up():
+    """Segment 3, one marker, hangs from segment 2 (the most rigid) by rigidity, not cost:
+    its pair with segment 1 is cheaper than the tree's joints (a negative margin on the
+    joint costs) but is no runner-up; on the core's costs (3 left out, 1-2 bridged by 3's cost with 1) the
+    runner-up swaps 0-1 for 0-2 (+400 %)."""
+    inf = np.inf
+    cost = np.array([[inf, 1.0, 5.0, 9.0], [1.0, inf, 2.0, 0.05], [5.0, 2.0, inf, 0.1], [9.0, 0.05, 0.1, inf]])
+    marker_segment = np.array([0, 0, 1, 1, 2, 2, 3])
+    distance_std = np.full((7, 7), 0.05)
+    distance_std[6, 4:6] = distance_std[4:6, 6] = 0.002  # the lone marker moves with segment 2
+    distance_std[6, 2:4] = distance_std[2:4, 6] = 0.01  # then with segment 1
+    segmentation = SimpleNamespace(marker_segment=marker_segment, distance_std=distance_std)
+    edges, attachments, _ = attachment_tree(cost, marker_segment, distance_std)
+    assert attachments[0][:3] == (3, 2, 1)
+    topology = SimpleNamespace(
+        edges=edges, pair_costs=SimpleNamespace(cost=cost, too_few_markers=None), pose_exchanges=(),
+        attachments=attachments,
+    )
+    plain = runner_up(topology)  # the joint costs alone: 1-3, cheaper than the tree's joints
+    assert 3 in plain.rival and plain.margin < 0
+    lines = tree_lines(topology, ("A", "B", "C", "D"), {}, segmentation)
+    assert lines[0] == (
+        "tree: minimum spanning tree of the joint costs between segments of two or more markers, 1 one-marker "
+        "segment(s) hung from the most rigid, the pose check exchanged none; rooted at its centre"
+    )
+    assert lines[1].startswith("  runner-up: A-C instead of A-B, MST weight +400.0 %")
 
 
 def test_disconnected_graph_gives_forest():
@@ -461,8 +541,15 @@ def test_a_walk_alone_names_the_joints_it_cannot_place():
     thighs = {truth.segment_names.index(f"{side}_thigh") for side in "lr"}
     hips = [j for j, (p, c) in enumerate(result.edges) if pelvis in (p, c) and m[int(p + c - pelvis)] in thighs]
     assert len(hips) == 2 and {result.joint_name(j) for j in hips} <= named
-    assert result.summary().count("undetermined") == len(named) + 1  # each joint's row and the named line
+    text = result.summary()
+    for name in named:  # its row says undetermined, not a length, and a line the motion it lacks
+        row, lack = [line.strip() for line in text.splitlines() if line.strip().startswith(f"{name}:")]
+        assert row.endswith("undetermined") and lack.startswith(f"{name}: needs ")
+    assert "> 10 m" not in text
     (b,) = [b for b, pair in enumerate(result.skeleton.bones.tolist()) if set(pair) == set(hips)]
+    bone = result._bone_name(*result.skeleton.bones[b])
+    (width,) = [line for line in text.splitlines() if line.startswith(f"  {bone}:")]
+    assert "undetermined (joints " in width and all(result.joint_name(j) in width for j in hips)
     true_hips = [truth.joint_names.index(f"{side}_hip") for side in "lr"]
     true_width = np.linalg.norm(np.subtract(*truth.joint_positions[0, true_hips]))
     assert abs(result.skeleton.bone_lengths[b] - true_width) < jaxskel.bone_uncertainty(result.skeleton)[b]
