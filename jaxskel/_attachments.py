@@ -34,13 +34,13 @@ seen together, never moved) takes part in the core's tree like any other segment
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ._tree import mst_edges
 
-__all__ = ["Attachment", "attachment_tree"]
+__all__ = ["Attachment", "attachment_tree", "core_costs"]
 
 
 class Attachment(NamedTuple):
@@ -97,3 +97,13 @@ def attachment_tree(
     leaves = np.array([(a.host, a.segment) for a in attachments], dtype=int).reshape(-1, 2)
     edges = np.sort(np.concatenate([core, leaves]), axis=1)
     return edges[np.lexsort((edges[:, 1], edges[:, 0]))], tuple(attachments), core_cost
+
+
+def core_costs(pair_costs: Any, segmentation: Any) -> np.ndarray:
+    """The (S, S) costs the core's spanning tree is built on (:func:`attachment_tree`):
+    ``inf`` to and from one-marker attachments, the pairs they bridge at their cost. The
+    tree's rivals and near ties are judged on these: an attachment is hung by rigidity,
+    and its cheap joint costs are what made it a hub."""
+    return attachment_tree(
+        pair_costs.cost, segmentation.marker_segment, segmentation.distance_std, pair_costs.too_few_markers
+    )[2]

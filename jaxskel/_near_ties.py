@@ -54,6 +54,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ._attachments import core_costs
+from ._pose_check import MISFIT_FACTOR
 from ._tree import _adjacency, _bfs
 
 __all__ = ["NearTie", "RivalMargin", "near_ties", "rival_edges", "rival_margins", "runner_up"]
@@ -158,7 +160,11 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -
     mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
     seg = np.asarray(segmentation.marker_segment)
     out = []
-    for m in rival_margins(topology):
+    # on the core's costs: a one-marker attachment neither has a near tie nor is one
+    misfit = getattr(topology, "fixed_misfit", None)
+    for m in rival_margins(topology, core_costs(pc, segmentation)):
+        if misfit is not None and misfit[m.rival] > MISFIT_FACTOR * misfit[m.edge]:
+            continue  # the poses settle it: a centre fixed in both fits the tree's pair far better
         d_joint, d_rival = _residual_dof(mask, seg, *m.edge), _residual_dof(mask, seg, *m.rival)
         if d_joint <= 0 or d_rival <= 0:
             continue

@@ -139,15 +139,6 @@ def undetermined_lines(joints: Sequence[int], names: Sequence[str], skeleton: An
     return lines
 
 
-def _core_cost(topology: Any, segmentation: Any) -> np.ndarray:
-    """The (S, S) costs the core's spanning tree was built on (:mod:`jaxskel._attachments`:
-    ``inf`` to and from one-marker segments, pairs an attachment bridges at its cost)."""
-    from ._attachments import attachment_tree
-
-    pc = topology.pair_costs
-    return attachment_tree(pc.cost, segmentation.marker_segment, segmentation.distance_std, pc.too_few_markers)[2]
-
-
 def _how_chosen(topology: Any, n_segments: int, settings: Mapping[str, Any]) -> str:
     """The tree line: spanning tree, attachments, pose check, root."""
     spanning = "tree" if len(topology.edges) == n_segments - 1 else "forest"
@@ -170,10 +161,11 @@ def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any],
     """How the tree was chosen, and its runner-up (module docstring). With ``segmentation``
     the runner-up is judged on the costs the core's tree was built on (attachments left
     out); without it on the joint costs."""
+    from ._attachments import core_costs
     from ._near_ties import runner_up
 
     lines = [_how_chosen(topology, len(names), settings)]
-    best = runner_up(topology, None if segmentation is None else _core_cost(topology, segmentation))
+    best = runner_up(topology, None if segmentation is None else core_costs(topology.pair_costs, segmentation))
     if best is None:
         lines.append("  runner-up: none (no joint chosen by cost has another feasible pair across its cut)")
         return lines
