@@ -112,6 +112,7 @@ _LAZY = {
     "plot_joint_costs": "_plots",
     "plot_skeleton_3d": "_plots",
     "plot_residuals": "_plots",
+    "plot_tree": "_plots",
     # many trials
     "fit_batch": "_batch",
     "BatchResult": "_batch",

@@ -164,6 +164,56 @@ def plot_residuals(result: Any, ax: Any = None) -> Any:
     return ax
 
 
+def _tree_layout(n: int, edges: np.ndarray, roots: list[int]) -> dict[int, tuple[float, int]]:
+    """(x, depth) of every segment: leaves spaced evenly in depth-first order, a parent
+    centred over its children, roots at depth 0."""
+    children: dict[int, list[int]] = {s: [] for s in range(n)}
+    for p, c in np.asarray(edges, dtype=int).reshape(-1, 2).tolist():
+        children[p].append(c)
+    place: dict[int, tuple[float, int]] = {}
+    next_leaf = [0.0]
+
+    def visit(s: int, depth: int) -> float:
+        kids = [visit(c, depth + 1) for c in children[s]]
+        x = float(np.mean(kids)) if kids else next_leaf[0]
+        if not kids:
+            next_leaf[0] += 1.0
+        place[s] = (x, depth)
+        return x
+
+    for r in roots:
+        visit(int(r), 0)
+    for s in range(n):  # a segment outside every tree (none in a fit): a row of its own
+        if s not in place:
+            place[s] = (next_leaf[0], 0)
+            next_leaf[0] += 1.0
+    return place
+
+
+def plot_tree(result: Any, ax: Any = None) -> Any:
+    """The fitted tree as a hierarchy from its root: segments by name, joints as lines,
+    one-marker attachments in grey, joints the recording leaves undetermined dashed."""
+    ax = _ax(ax)
+    topo = result.topology
+    names = list(result.segment_names)
+    place = _tree_layout(result.n_segments, topo.edges, list(topo.roots))
+    loose = {u.joint for u in result.undetermined_joints()}
+    hung = {a.segment for a in getattr(topo, "attachments", ())}
+    for j, (p, c) in enumerate(np.asarray(topo.edges, dtype=int).tolist()):
+        (x0, y0), (x1, y1) = place[p], place[c]
+        ax.plot([x0, x1], [-y0, -y1], color="0.6" if c in hung else "k", lw=1.2, ls="--" if j in loose else "-")
+    for s, (x, y) in place.items():
+        ax.text(x, -y, names[s], ha="center", va="center", fontsize=5, rotation=0 if len(names[s]) <= 8 else 20, color="0.45" if s in hung else "k",
+                bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "0.6" if s in hung else "k", "lw": 0.6})
+    xs = [x for x, _ in place.values()]
+    depth = max((d for _, d in place.values()), default=0)
+    ax.set_xlim(min(xs, default=0) - 1, max(xs, default=0) + 1)
+    ax.set_ylim(-depth - 0.6, 0.6)
+    ax.set_axis_off()
+    ax.set_title("tree from the root (grey: one-marker attachments; dashed: undetermined joints)", fontsize=9)
+    return ax
+
+
 def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, overwrite: bool = False) -> Any:
     """2 x 3 summary figure; saved atomically to ``path`` when given."""
     plt = _plt()
@@ -173,6 +223,7 @@ def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, ove
     plot_joint_costs(result, fig.add_subplot(2, 3, 3))
     plot_skeleton_3d(result, ax=fig.add_subplot(2, 3, 4, projection="3d"))
     plot_residuals(result, fig.add_subplot(2, 3, 5))
+    plot_tree(result, fig.add_subplot(2, 3, 6))
     fig.suptitle(str(result.trial.source or "jaxskel fit"), fontsize=9)
     fig.tight_layout()
     if path is not None:
