@@ -13,8 +13,9 @@ import contextlib
 import errno
 import os
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 from ._errors import InputError
 
@@ -120,3 +121,28 @@ def _publish_exclusive(tmp: Path, target: Path) -> None:
                 f"{target} already exists; pass overwrite=True to replace it"
             ) from None
         os.replace(tmp, target)
+
+
+def input_sources(trial: Any) -> list[str]:
+    """The files a (possibly combined) trial was read from."""
+    meta = getattr(trial, "metadata", None) or {}
+    sources = [*(meta.get("sources", ()) or ()), *(meta.get("files", ()) or ()), meta.get("file", "")]
+    sources += str(getattr(trial, "source", "") or "").split(" + ")
+    return [v for v in sources if v and v != "<array>"]
+
+
+def refuse_input(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], what: str = "the output") -> None:
+    """Raise :class:`InputError` when ``path`` names one of ``inputs`` (the same file by
+    path or, where both exist, by inode): an input is never written over, whatever
+    ``overwrite`` says."""
+    target = Path(path)
+    for source in inputs:
+        src = Path(source)
+        same = target.resolve() == src.resolve()
+        if not same and target.exists() and src.exists():
+            same = os.path.samefile(target, src)
+        if same:
+            raise InputError(
+                f"{what} {target} is the input recording {src}; jaxskel never writes over an input, even with "
+                "overwrite: choose another name"
+            )

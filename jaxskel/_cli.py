@@ -200,18 +200,37 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrite: bool) -> None:
+    """Before any work: no output names an input (even with ``--overwrite``), two outputs
+    are two files, none is a folder, an existing one is replaced only with ``--overwrite``,
+    and each one's folder, where it exists, is writable."""
+    import jaxskel
+
+    from ._atomic import refuse_input
+
+    named: dict[str, str] = {}
+    for flag, path in outputs.items():
+        if path is None:
+            continue
+        refuse_input(path, inputs, flag)
+        key = os.path.abspath(path)
+        if key in named:
+            raise jaxskel.InputError(f"{named[key]} and {flag} both name {path}; give each output its own file")
+        named[key] = flag
+        if path.is_dir():
+            raise jaxskel.InputError(f"{flag} {path} is a folder; give a file name inside it")
+        if path.exists() and not overwrite:
+            raise jaxskel.InputError(f"{path} exists; pass --overwrite to replace it")
+        folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path("."))
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise jaxskel.InputError(f"cannot write {flag} {path}: the folder {folder} is not writable")
+
+
 def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     import jaxskel
 
     quiet = getattr(args, "quiet", False)
-    for path in inputs:
-        if output.exists() and output.resolve() == path.resolve():
-            raise jaxskel.InputError(f"the output {output} is one of the inputs; choose another name")
-    for extra in (args.plot, args.bvh, args.trc):
-        if extra is not None and extra.exists() and not args.overwrite:
-            raise jaxskel.InputError(f"{extra} exists; pass --overwrite to replace it")
-    if output.exists() and not args.overwrite:
-        raise jaxskel.InputError(f"{output} exists; pass --overwrite to replace it")
+    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc}, args.overwrite)
     if output.parent and not output.parent.exists():
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -173,8 +173,10 @@ def load(
         ``kept_prefix_labels`` and ``renamed_labels`` (see the module notes),
         ``up_axis_source`` (``"argument"``, ``"file"``, ``"file+data"``,
         ``"data"``) and ``up_axis_scores``, plus format-specific entries
-        (``manufacturer``, ``stated_up_axis``, ...). A trial read from HDF5
-        gets back the source and metadata it was saved with.
+        (``manufacturer``, ``stated_up_axis``, ...), and ``file``: the path this
+        load read (outputs are never written over it). A trial read from HDF5
+        gets back the source and metadata it was saved with (``file`` is never
+        stored: each load sets its own).
 
     Notes
     -----
@@ -577,6 +579,7 @@ def _to_trial(
             metadata["n_dropped"] = len(metadata["dropped_labels"])
         if up_source == "argument":
             metadata["up_axis_source"] = up_source
+    metadata["file"] = str(file)  # the file this load read (a saved trial keeps its own source)
     return Trial(
         positions=positions,
         labels=tuple(labels),

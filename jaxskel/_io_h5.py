@@ -42,7 +42,8 @@ def write_h5(trial: Trial, file: Path, *, overwrite: bool = False) -> None:
     """Write ``trial`` in the layout of the module docstring (gzip-compressed positions)."""
     from . import __version__
 
-    metadata = json.dumps(_jsonable(trial.metadata))
+    # "file" is where a load read the trial from: set anew by every load, never stored
+    metadata = json.dumps(_jsonable({k: v for k, v in trial.metadata.items() if k != "file"}))
     with atomic_output(file, overwrite) as tmp, h5py.File(tmp, "w") as h5:
         h5.attrs["jaxskel_trial_version"] = TRIAL_VERSION
         h5.attrs["jaxskel_version"] = __version__

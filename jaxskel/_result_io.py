@@ -49,7 +49,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ._atomic import atomic_output
+from ._atomic import atomic_output, input_sources, refuse_input
 from ._errors import InputError, SchemaError
 
 __all__ = ["SCHEMA_VERSION", "save_result", "load_result", "ResultFile"]
@@ -114,9 +114,7 @@ def save_result(
     from . import __version__
 
     path = Path(path)
-    src = result.trial.source
-    if src and Path(src).exists() and Path(src).resolve() == path.resolve():
-        raise InputError(f"refusing to write the result over the input recording {path}")
+    refuse_input(path, input_sources(result.trial), "the result file")
     seg = result.segmentation
     topo = result.topology
     with atomic_output(path, overwrite) as tmp:

@@ -679,5 +679,6 @@ def combine_trials(trials: Sequence[Trial]) -> Trial:
         rate=trials[0].rate,
         up_axis=ups.pop() if len(ups) == 1 else "unknown",
         source=" + ".join(t.source or "<array>" for t in trials),
-        metadata={"trial_bounds": tuple(bounds), "sources": tuple(t.source for t in trials)},
+        metadata={"trial_bounds": tuple(bounds), "sources": tuple(t.source for t in trials),
+                  "files": tuple(t.metadata.get("file", "") for t in trials)},
     )

@@ -422,3 +422,47 @@ def test_compile_cache_is_kept_apart_per_cpu_and_jaxlib(monkeypatch):
     monkeypatch.undo()
     identity = _cli._cpu_identity()
     assert identity and ("flags=" in identity or "features=" in identity or "processor=" in identity)
+
+
+def test_no_output_is_ever_written_over_an_input(linkage_trial, tmp_path, capsys):
+    """Issue 45, item 1: `--trc IN.trc --overwrite` (or --bvh, --plot, -o) named the input and
+    replaced it after the fit. Every output is checked against every input before any work,
+    --overwrite or not, and the input is left byte for byte; two outputs naming one file,
+    an output that is a folder, and an unwritable folder are refused up front too. The
+    API's save() refuses the input recording likewise."""
+    import os
+    import stat
+
+    trial, _ = linkage_trial
+    src = tmp_path / "in.trc"
+    trial.save(src)
+    before = src.read_bytes()
+    out = tmp_path / "r.h5"
+    for flag in ("--trc", "--bvh", "--plot"):
+        assert main(["fit", str(src), "-o", str(out), flag, str(src), "--overwrite", "--quiet", "--no-rigid"]) == 2
+        err = capsys.readouterr().err
+        assert f"{flag} {src} is the input recording" in err and "never writes over an input" in err
+        assert src.read_bytes() == before and not out.exists()
+    link = tmp_path / "alias.trc"
+    os.link(src, link)  # the same file under another name
+    assert main(["fit", str(src), "-o", str(out), "--trc", str(link), "--overwrite", "--quiet"]) == 2
+    assert src.read_bytes() == before
+    assert main(["fit", str(src), "-o", str(out), "--bvh", str(out), "--quiet"]) == 2
+    assert "both name" in capsys.readouterr().err
+    assert main(["fit", str(src), "-o", str(tmp_path), "--quiet"]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        if not os.access(locked, os.W_OK):  # root may write anywhere: nothing to check then
+            assert main(["fit", str(src), "-o", str(locked / "r.h5"), "--quiet"]) == 2
+            assert "not writable" in capsys.readouterr().err
+    finally:
+        locked.chmod(stat.S_IRWXU)
+    h5 = tmp_path / "in.h5"
+    trial.save(h5)
+    result = jaxskel.fit_skeleton(jaxskel.load(h5), rigid=False, ik=False)
+    with pytest.raises(jaxskel.InputError, match="is the input recording"):
+        result.save(h5, overwrite=True)
+    assert jaxskel.load(h5).n_frames == trial.n_frames

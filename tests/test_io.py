@@ -154,8 +154,9 @@ def test_round_trip(tmp_path, suffix, tol):
     assert back.metadata["first_frame"] == 7
     np.testing.assert_array_equal(back.mask, trial.mask)
     np.testing.assert_allclose(back.positions, trial.positions, atol=tol, rtol=0)
+    assert back.metadata["file"] == str(path)  # where this load read it (jaxskel never writes over it)
     if suffix == ".h5":
-        assert dict(back.metadata) == dict(trial.metadata)
+        assert dict(back.metadata) == {**trial.metadata, "file": str(path)}
     else:
         assert back.metadata["original_units"] == "mm"
         assert back.metadata["reader"] == suffix[1:]
@@ -176,7 +177,10 @@ def test_h5_round_trip_is_exact_including_metadata(tmp_path):
         "reader": "c3d",
         "dropped_labels": ["*1"],
         "n": 4,
+        "file": str(tmp_path / "t.h5"),
     }
+    back.save(tmp_path / "again.h5")  # "file" is never stored: each load sets its own
+    assert load(tmp_path / "again.h5").metadata["file"] == str(tmp_path / "again.h5")
     assert np.array_equal(back.positions, trial.positions, equal_nan=True)
 
 
