@@ -45,9 +45,8 @@ the other segment's pose (01_01's left upper arm: 17 mm^2 about the thorax, 72 a
 mm^2 about the right upper arm and the head). Rivals across the cut are judged by the
 same statistic (the better of a pair's two directions), with the same factor, and
 one-marker attachments (:mod:`jaxskel._attachments`) take no part. Exchanges are
-labelled ``test="sphere"``. On the synthetic sweeps (``bench/sweep_bodies.py``) it
-makes two more random trees exact and changes nothing else; on the real recordings it
-makes CMU 01_01 anatomical and changes no right joint (``bench/real_trees.py``).
+labelled ``test="sphere"``. Its effect on synthetic and real trees is measured by
+``bench/sweep_bodies.py`` and ``bench/real_trees.py`` (``docs/bench/``).
 
 Why a margin, and not simply a spanning tree of the misfit: where two segments barely
 turn against each other, any point is nearly fixed in both and the misfit is small
