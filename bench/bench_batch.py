@@ -95,7 +95,7 @@ def run(quick: bool = False, *, sizes: list[int] | None = None, duration: float 
         modes: tuple[str, ...] = MODES, batch_size: int = 8, workers: int = 2) -> dict:
     """Time every mode on every size; returns ``{"rows": [...], "ratios": [...], ...}``."""
     import jaxskel
-    from jaxskel._cli import _enable_compile_cache
+    from jaxskel._runtime.compile_cache import enable_compile_cache as _enable_compile_cache
 
     _enable_compile_cache()
     sizes = sizes or ([1, 2, 4] if quick else [1, 8, 64])

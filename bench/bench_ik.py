@@ -5,7 +5,7 @@ calibration motion at 120 Hz, 2 mm noise, posed on the *true* skeleton (so both 
 solve exactly the same problem). Every solver starts from the same per-frame Horn
 initial guess and minimises the same energy (markers + the 1 mm/rad pose prior).
 
-* ``jaxskel core``: the compiled solver (:func:`jaxskel._ik_batch.solve`: Horn start,
+* ``jaxskel core``: the compiled solver (:func:`jaxskel.skeleton._ik_batch.solve`: Horn start,
   tree-eliminated Levenberg-Marquardt/Newton, frames vectorised in chunks), warm.
 * ``jaxskel inverse_kinematics``: the public call (input checks, padding, host copies).
 * ``scipy``: ``scipy.optimize.least_squares`` (trust-region reflective, 2-point Jacobian)
@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 import jaxskel  # noqa: E402,F401  (enables float64)
 from jaxskel import synth  # noqa: E402
-from jaxskel._ik import (  # noqa: E402
+from jaxskel.skeleton._ik import (  # noqa: E402
     DEFAULT_PRIOR_WEIGHT,
     _relative_rotations,
     _residuals,
@@ -49,9 +49,9 @@ from jaxskel._ik import (  # noqa: E402
     ik_model,
     inverse_kinematics,
 )
-from jaxskel._ik_batch import batch_model, solve  # noqa: E402
-from jaxskel._padding import bucket_size  # noqa: E402
-from jaxskel._rigid import Skeleton  # noqa: E402
+from jaxskel.skeleton._ik_batch import batch_model, solve  # noqa: E402
+from jaxskel._math.padding import bucket_size  # noqa: E402
+from jaxskel.skeleton._rigid_fit import Skeleton  # noqa: E402
 
 
 def truth_skeleton(trial, truth) -> Skeleton:
@@ -80,7 +80,7 @@ def scipy_ik(skeleton, x, mask, t0, q0, prior_weight):
     edges = skeleton.edges
     parent = skeleton.parent
     n_seg = skeleton.n_segments
-    path = np.asarray(jaxskel._ik.kinematic_chain(jnp.asarray(edges)).path)
+    path = np.asarray(jaxskel.skeleton._ik.kinematic_chain(jnp.asarray(edges)).path)
     seg = skeleton.marker_segment
     mo, jo = skeleton.marker_offsets, skeleton.joint_offsets
 
@@ -120,7 +120,7 @@ def optimistix_ik(model):
         y0 = (tf, jnp.zeros_like(qf[:, 1:]))
         sol = optx.least_squares(_residuals, solver, y0, args, max_steps=256, throw=False)
         t, delta = sol.value
-        q = jaxskel._geometry.quat_multiply(jaxskel._geometry.axis_angle_to_quat(delta), qf)
+        q = jaxskel._math.geometry.quat_multiply(jaxskel._math.geometry.axis_angle_to_quat(delta), qf)
         return t, q, sol.stats["num_steps"]
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None)))

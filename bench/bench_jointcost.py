@@ -35,7 +35,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxskel import bucket_size, synth  # noqa: E402  (importing jaxskel enables float64)
-from jaxskel._jointcost import solve_joints  # noqa: E402
+from jaxskel.joints._cost import solve_joints  # noqa: E402
 
 ALPHA = 1e-4
 
@@ -122,7 +122,7 @@ def main(argv=None):
     for name, pairs, frames in cases:
         xs, ms, joints = pair_arrays(trial, truth, frames, pairs)
         variants = [("lm", None), ("ncg", None)]
-        if len(pairs) > 1:  # the topology pass caps the all-pairs solve (jaxskel._topology uses 60)
+        if len(pairs) > 1:  # the topology pass caps the all-pairs solve (jaxskel.joints._topology uses 60)
             variants.insert(1, ("lm", 60))
         rows += run_case(name, xs, ms, joints, variants)
 

@@ -69,8 +69,8 @@ def measure(duration: float = 30.0) -> dict:
 
     import jaxskel
     from jaxskel import synth
-    from jaxskel._relabel_fragments import fragment_arrays, split_fragments
-    from jaxskel._relabel_search import sampled_distance
+    from jaxskel.relabel._fragments import fragment_arrays, split_fragments
+    from jaxskel.relabel._search import sampled_distance
 
     body = synth.full_body(seed=0)
     trial, truth = synth.simulate(

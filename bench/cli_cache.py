@@ -10,10 +10,10 @@ HDF5. With a fresh, empty ``JAXSKEL_CACHE_DIR``:
    so run 2's saving is measured against the same work;
 4. and 5. runs 1 and 2 again with a second empty cache and the saved programs off
    (``JAXSKEL_PROGRAM_CACHE=0``, the compiled-code cache only): the baseline of what
-   the saved traced programs (``jaxskel._program_cache``) add.
+   the saved traced programs (``jaxskel._runtime.program_cache``) add.
 
 Last, one process fits A and then B twice with the same command-line code
-(``jaxskel._cli.main``): the best B is the warm in-process time of the very same job,
+(``jaxskel.cli.main``): the best B is the warm in-process time of the very same job,
 the floor that the compilation overhead of a new process is measured from.
 
 The sequence runs ``repeats`` times, each time with a new empty cache, and the
@@ -40,7 +40,7 @@ def _jaxskel_command() -> list[str]:
     script = Path(sys.executable).with_name("jaxskel")
     if script.exists():
         return [str(script)]
-    return [sys.executable, "-c", "import sys; from jaxskel._cli import main; sys.exit(main())"]
+    return [sys.executable, "-c", "import sys; from jaxskel.cli import main; sys.exit(main())"]
 
 
 def run_cli(spec: dict) -> dict:
@@ -92,7 +92,7 @@ def run_cli(spec: dict) -> dict:
 
 _WARM = """
 import sys, time
-from jaxskel._cli import main
+from jaxskel.cli import main
 first, second, out = sys.argv[1:]
 best = float("inf")
 for path in (first, second, second):

@@ -51,7 +51,7 @@ def _since(start) -> tuple[float, float]:
 def _jaxskel_stages(trial, upto: str) -> tuple[dict, dict, dict]:
     """Run the stages up to ``upto`` by their public functions; (outputs, wall s, cpu s)."""
     import jaxskel as js
-    from jaxskel._rigid import SOLVED_JOINT_WEIGHT
+    from jaxskel.skeleton._rigid_fit import SOLVED_JOINT_WEIGHT
 
     order = list(STAGES)
     stop = order.index(upto)

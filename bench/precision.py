@@ -18,7 +18,7 @@ Because the public stages turned out to convert to float64 (see the record), the
 numerical kernels are also timed directly in both precisions, on the arrays the
 float64 chain built: the all-pairs joint solve (``jaxskel.solve_joints`` on the
 first 64 candidate pairs x 300 frames, as one chunk of ``joint_costs``), the tree
-joints on all frames (``solve_joints``), and the IK core (``jaxskel._ik._ik_frames``
+joints on all frames (``solve_joints``), and the IK core (``jaxskel.skeleton._ik._ik_frames``
 with an ``ik_model`` of that dtype). Per kernel: warm seconds, output dtype, and the
 result's difference from float64 (pair costs: largest relative difference; joints:
 largest distance in metres; IK: largest joint-centre distance).
@@ -40,7 +40,7 @@ __all__ = ["run_precision"]
 def _chain(trial):
     """The stages in fit_skeleton's order; (outputs, warm seconds) of the second of two runs."""
     import jaxskel as js
-    from jaxskel._rigid import SOLVED_JOINT_WEIGHT
+    from jaxskel.skeleton._rigid_fit import SOLVED_JOINT_WEIGHT
 
     for _ in range(2):
         times, out = {}, {}
@@ -91,9 +91,9 @@ def kernel_precision(out: dict) -> dict:
     """The joint-solve and IK kernels called directly with float32 and float64 arrays."""
 
     import jaxskel as js
-    from jaxskel._ik import DEFAULT_PRIOR_WEIGHT
-    from jaxskel._ik_batch import batch_model, solve
-    from jaxskel._topology import PAIR_CHUNK, pair_arrays
+    from jaxskel.skeleton._ik import DEFAULT_PRIOR_WEIGHT
+    from jaxskel.skeleton._ik_batch import batch_model, solve
+    from jaxskel.joints._topology import PAIR_CHUNK, pair_arrays
 
     trial, seg, topo, sk = out["trial"], out["segmentation"], out["topology"], out["skeleton"]
     x, mask = trial.to_arrays()

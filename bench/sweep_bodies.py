@@ -10,8 +10,8 @@ gaps per marker:
 Each is fitted with :func:`jaxskel.fit_skeleton` defaults (no IK) and judged on the
 truth: ``seg`` the marker grouping is exact, ``tree`` the fitted edges (segments named by
 the true segment most of their markers sit on) are exactly the true joints. Printed with
-the segment counts (and whether the count grew after the rigid fit, :mod:`jaxskel._split_refit`),
-the joints the pose check exchanged (:mod:`jaxskel._pose_check`), the markers the rigid
+the segment counts (and whether the count grew after the rigid fit, :mod:`jaxskel.pipeline._split_refit`),
+the joints the pose check exchanged (:mod:`jaxskel.joints._pose_check`), the markers the rigid
 skeleton flags (``NonRigidMarkerWarning``) and the other warnings, so a
 wrong answer that says nothing stands out.
 

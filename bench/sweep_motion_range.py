@@ -20,7 +20,7 @@ defaults (no IK) and judged on the truth:
   true tree when nothing is joined);
 * ``range``: the median over joints of each joint's largest excursion (degrees), so a
   fraction reads as an amount of motion;
-* ``undet``: how many joints the fit names undetermined (:mod:`jaxskel._determination`:
+* ``undet``: how many joints the fit names undetermined (:mod:`jaxskel.joints._determination`:
   centre fixed only to within more than 10 cm).
 
 Printed with the warnings of each fit, so a wrong answer that says nothing stands out.

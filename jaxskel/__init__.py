@@ -1,7 +1,7 @@
 """jaxskel: automatic articulated skeletons from optical motion-capture markers, on JAX.
 
 The flat public API lives here; the implementation is in small private modules
-(``jaxskel._trial``, ``jaxskel._clean``, ...). Names are imported lazily so that
+(``jaxskel.io._trial``, ``jaxskel.clean._clean``, ...). Names are imported lazily so that
 ``import jaxskel`` stays fast and a command-line call pays only for what it uses.
 
 jaxskel enables JAX's 64-bit mode on import (joint fitting needs float64 accuracy;
@@ -12,7 +12,7 @@ jaxskel also runs XLA's CPU backend with single-threaded Eigen
 (``--xla_cpu_multi_thread_eigen=false`` in ``XLA_FLAGS``) unless ``XLA_FLAGS``
 already says otherwise or ``JAXSKEL_XLA_MULTI_THREAD=1``: with the multi-threaded
 Eigen pool, vmapped solves were seen to wedge for good on 2-core machines under
-load (see ``jaxskel._linalg`` for the mechanism, and ``docs/design.md``). This only
+load (see ``jaxskel._math.linalg`` for the mechanism, and ``docs/design.md``). This only
 takes effect if no JAX computation ran before ``import jaxskel``.
 """
 
@@ -22,7 +22,7 @@ import importlib
 import os
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: F401  (public: jaxskel.__version__)
 
 if not os.environ.get("JAXSKEL_XLA_MULTI_THREAD") and "xla_cpu_multi_thread_eigen" not in os.environ.get(
     "XLA_FLAGS", ""
@@ -47,84 +47,84 @@ _LAZY = {
     "NonRigidMarkerWarning": "_errors",
     "AmbiguousTreeWarning": "_errors",
     # data model and I/O
-    "Trial": "_trial",
-    "bucket_size": "_padding",
-    "load": "_io",
-    "load_sample": "_data",
-    "sample_path": "_data",
-    "save_trial": "_io",
+    "Trial": "io._trial",
+    "bucket_size": "_math.padding",
+    "load": "io._load",
+    "load_sample": "io._sample",
+    "sample_path": "io._sample",
+    "save_trial": "io._load",
     # cleaning
-    "clean": "_clean",
-    "CleaningReport": "_clean",
+    "clean": "clean._clean",
+    "CleaningReport": "clean._clean",
     # skeleton from markers (Kirk et al. 2005)
-    "segment_markers": "_segment",
-    "Segmentation": "_segment",
-    "joint_costs": "_topology",
-    "fit_topology": "_topology",
-    "Topology": "_topology",
-    "UntestedJoint": "_topology",
-    "untested_joints": "_topology",
-    "PoseExchange": "_pose_check",
-    "Attachment": "_attachments",
-    "NearTie": "_near_ties",
-    "near_ties": "_near_ties",
-    "UndeterminedJoint": "_determination",
-    "undetermined_joints": "_determination",
-    "joint_resolution": "_determination",
-    "bone_uncertainty": "_determination",
-    "lowpass_markers": "_lowpass",
-    "Lowpassed": "_lowpass",
-    "solve_joint": "_jointcost",
-    "solve_joints": "_jointcost",
-    "JointSolution": "_jointcost",
-    "fit_skeleton": "_fit",
-    "SkeletonResult": "_fit",
-    "load_result": "_result_io",
+    "segment_markers": "segment._spectral",
+    "Segmentation": "segment._spectral",
+    "joint_costs": "joints._topology",
+    "fit_topology": "joints._topology",
+    "Topology": "joints._topology",
+    "UntestedJoint": "joints._topology",
+    "untested_joints": "joints._topology",
+    "PoseExchange": "joints._pose_check",
+    "Attachment": "joints._attachments",
+    "NearTie": "joints._near_ties",
+    "near_ties": "joints._near_ties",
+    "UndeterminedJoint": "joints._determination",
+    "undetermined_joints": "joints._determination",
+    "joint_resolution": "joints._determination",
+    "bone_uncertainty": "joints._determination",
+    "lowpass_markers": "clean._lowpass",
+    "Lowpassed": "clean._lowpass",
+    "solve_joint": "joints._cost",
+    "solve_joints": "joints._cost",
+    "JointSolution": "joints._cost",
+    "fit_skeleton": "pipeline._fit",
+    "SkeletonResult": "pipeline._fit",
+    "load_result": "result._format",
     # rigid skeleton, IK and exports
-    "fit_rigid": "_rigid",
-    "Skeleton": "_rigid",
-    "inverse_kinematics": "_ik",
-    "Motion": "_ik",
-    "forward_kinematics": "_ik",
-    "ik_solve": "_ik",
-    "BvhData": "_bvh",
-    "export_bvh": "_bvh",
-    "read_bvh": "_bvh",
+    "fit_rigid": "skeleton._rigid_fit",
+    "Skeleton": "skeleton._rigid_fit",
+    "inverse_kinematics": "skeleton._ik",
+    "Motion": "skeleton._ik",
+    "forward_kinematics": "skeleton._ik",
+    "ik_solve": "skeleton._ik",
+    "BvhData": "result._bvh",
+    "export_bvh": "result._bvh",
+    "read_bvh": "result._bvh",
     # passive-marker correspondence
-    "merge_labels": "_relabel",
-    "LabelMapping": "_relabel",
-    "needs_merging": "_relabel",
-    "confirm_merges": "_relabel_confirm",
+    "merge_labels": "relabel._merge",
+    "LabelMapping": "relabel._merge",
+    "needs_merging": "relabel._merge",
+    "confirm_merges": "relabel._confirm",
     # Sar Dessai et al. 2006
-    "normalize": "_normalize",
-    "Normalization": "_normalize",
-    "parameterize": "_parameterize",
-    "Parameterization": "_parameterize",
-    "Pose": "_parameterize",
-    "normalize_arrays": "_normalize",
-    "parameterize_arrays": "_parameterize",
-    "plot_joint_spheres": "_plots_params",
-    "plot_speed_histograms": "_plots_params",
-    "plot_angles": "_plots_params",
-    "plot_summary": "_plots",
-    "plot_distance_std": "_plots",
-    "plot_spectrum": "_plots",
-    "plot_joint_costs": "_plots",
-    "plot_skeleton_3d": "_plots",
-    "plot_residuals": "_plots",
-    "plot_tree": "_plots",
+    "normalize": "sd06._normalize",
+    "Normalization": "sd06._normalize",
+    "parameterize": "sd06._parameterize",
+    "Parameterization": "sd06._parameterize",
+    "Pose": "sd06._parameterize",
+    "normalize_arrays": "sd06._normalize",
+    "parameterize_arrays": "sd06._parameterize",
+    "plot_joint_spheres": "plots._parameter_plots",
+    "plot_speed_histograms": "plots._parameter_plots",
+    "plot_angles": "plots._parameter_plots",
+    "plot_summary": "plots._summary_plots",
+    "plot_distance_std": "plots._summary_plots",
+    "plot_spectrum": "plots._summary_plots",
+    "plot_joint_costs": "plots._summary_plots",
+    "plot_skeleton_3d": "plots._summary_plots",
+    "plot_residuals": "plots._summary_plots",
+    "plot_tree": "plots._summary_plots",
     # many trials
-    "fit_batch": "_batch",
-    "BatchResult": "_batch",
-    "TrialOutcome": "_batch",
-    "bone_length": "_batch_io",
-    "plot_bone_lengths": "_batch_io",
+    "fit_batch": "pipeline._batch",
+    "BatchResult": "pipeline._batch",
+    "TrialOutcome": "pipeline._batch",
+    "bone_length": "pipeline._batch_io",
+    "plot_bone_lengths": "pipeline._batch_io",
     # learning-pipeline API (pure, jit/vmap/grad-able)
-    "SkeletonStructure": "_functional",
-    "RigidFit": "_functional",
-    "joint_cost_fn": "_functional",
-    "rigid_fit_fn": "_functional",
-    "ik_fn": "_functional",
+    "SkeletonStructure": "learn._functional",
+    "RigidFit": "learn._functional",
+    "joint_cost_fn": "learn._functional",
+    "rigid_fit_fn": "learn._functional",
+    "ik_fn": "learn._functional",
 }
 
 __all__ = sorted([*_LAZY, "synth", "__version__"])
@@ -147,4 +147,4 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # pragma: no cover - for static tooling only
     from ._errors import *  # noqa: F403
-    from ._trial import Trial  # noqa: F401
+    from .io._trial import Trial  # noqa: F401

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from jaxskel import synth
-from jaxskel._geometry import matrix_to_quat
+from jaxskel._math.geometry import matrix_to_quat
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:

@@ -49,7 +49,7 @@ def _drop_compiled_programs():
     """Each test module's compiled programs go when it ends (the next module loads what it
     shares from the run's cache). A worker keeps them otherwise: ~12 memory mappings each,
     54,941 in one worker by the end of a run, against the kernel's limit of 65,530
-    (vm.max_map_count) past which XLA segfaults (jaxskel._map_limit)."""
+    (vm.max_map_count) past which XLA segfaults (jaxskel._runtime.map_limit)."""
     yield
     jax.clear_caches()
     gc.collect()

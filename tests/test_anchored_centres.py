@@ -1,4 +1,4 @@
-"""Joint centres refitted fixed in a segment's frame (jaxskel._anchored_centres).
+"""Joint centres refitted fixed in a segment's frame (jaxskel.joints._anchored_centres).
 
 Two segments with known geometry: ``A`` carries four nearly coplanar markers (a pelvis's
 waist markers), the joint lies 12 cm off their plane, ``B`` carries three markers. The
@@ -12,7 +12,7 @@ from helpers import random_rotation
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._anchored_centres import MIN_EXERCISE_DEG, anchored_centres
+from jaxskel.joints._anchored_centres import MIN_EXERCISE_DEG, anchored_centres
 from jaxskel.synth._rotation import rotvec_to_matrix
 
 A_MARKERS = np.array([[0.12, 0.08, 0.0], [-0.12, 0.08, 0.003], [0.12, -0.08, -0.002], [-0.12, -0.08, 0.0]])
@@ -174,7 +174,7 @@ def test_one_problem_per_call_gives_the_batched_answers(monkeypatch):
     """On a CPU each (joint, anchor) problem is its own call, since a vmapped while loop
     charges every member its slowest member's steps; the answers must be the batched
     call's (what an accelerator runs)."""
-    import jaxskel._anchored_centres as module
+    import jaxskel.joints._anchored_centres as module
 
     trial, truth = synth.simulate(synth.full_body(seed=0), duration=8.0, seed=0, noise=0.002, soft_tissue=0.002)
     seen = []

@@ -1,11 +1,11 @@
-"""Anderson acceleration (jaxskel._anderson) against known answers on linear iterations."""
+"""Anderson acceleration (jaxskel._math.anderson) against known answers on linear iterations."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from jaxskel._anderson import anderson_step
+from jaxskel._math.anderson import anderson_step
 
 
 def _slow_linear_map(n: int, seed: int):

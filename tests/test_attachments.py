@@ -1,9 +1,9 @@
-"""Single-marker segments as attachments (jaxskel._attachments), on hand-made graphs."""
+"""Single-marker segments as attachments (jaxskel.joints._attachments), on hand-made graphs."""
 
 import numpy as np
 
-from jaxskel._attachments import attachment_tree
-from jaxskel._tree import mst_edges
+from jaxskel.joints._attachments import attachment_tree
+from jaxskel.joints._tree import mst_edges
 
 
 def _graph():

@@ -15,7 +15,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._cli import main
+from jaxskel.cli import main
 
 BONES = {"middle": ("R1M1", "R2M1", "R3M1")}
 
@@ -202,8 +202,7 @@ def test_programs_are_dropped_near_the_mapping_limit_and_the_batch_is_unchanged(
     """Past three quarters of vm.max_map_count (XLA segfaults past the limit itself),
     fit_batch drops JAX's compiled programs before it solves the next batch, says so once,
     and the trial's fit is what it was with the programs kept."""
-    from jaxskel import _map_limit
-
+    from jaxskel._runtime import map_limit as _map_limit
     monkeypatch.setattr(_map_limit, "RELEASE_FRACTION", 0.0)  # every count is near the limit
     monkeypatch.setitem(_map_limit._state, "warned", False)
     with pytest.warns(RuntimeWarning, match="vm.max_map_count") as caught:
@@ -220,7 +219,8 @@ def test_every_jax_stage_of_a_batch_runs_under_the_device_lock(monkeypatch, tmp_
     outside the device lock while a finishing thread ran the anchored refit's, and two
     XLA:CPU executions at once hang for good. Every call of the segment poses, from any
     of the batch's threads, must hold the lock (checked, not timed: a hang is a race)."""
-    from jaxskel import _anchored_centres, _batch
+    from jaxskel.joints import _anchored_centres
+    from jaxskel.pipeline import _batch
 
     calls: list[tuple[str, bool]] = []  # the pose check imports the function from here when called
     real = _anchored_centres._segment_poses

@@ -14,10 +14,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxskel import InputError, synth
-from jaxskel._bvh import export_bvh, read_bvh
-from jaxskel._ik import Motion
-from jaxskel._names import names_from_markers
-from jaxskel._rigid import Skeleton
+from jaxskel.result._bvh import export_bvh, read_bvh
+from jaxskel.skeleton._ik import Motion
+from jaxskel.segment._names import names_from_markers
+from jaxskel.skeleton._rigid_fit import Skeleton
 
 
 def _truth_skeleton_and_motion(body, duration=1.0, seed=0):
@@ -144,7 +144,7 @@ def test_centimetres_and_other_rotation_order_on_a_random_tree(tmp_path):
 
 
 def test_segments_are_named_from_their_markers_and_the_names_survive_the_round_trip(tmp_path, full_body):
-    """Without labels the joints take the readable names of jaxskel._names (subject prefixes
+    """Without labels the joints take the readable names of jaxskel.segment._names (subject prefixes
     read past), and the independent `bvh` package reads the same names back."""
     skeleton, motion, _ = full_body
     prefixed = dataclasses.replace(skeleton, marker_labels=tuple(f"Sam:{v}" for v in skeleton.marker_labels))

@@ -1,4 +1,4 @@
-"""How well a recording determines joint centres and bone lengths (jaxskel._determination).
+"""How well a recording determines joint centres and bone lengths (jaxskel.joints._determination).
 
 The arithmetic is checked on hand-made diagnostics with known answers; the whole chain on
 synthetic bodies lives with the fits it reads (tests/test_topology.py, walk and full body)
@@ -12,9 +12,9 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._anchored_centres import MIN_EXERCISE_DEG
-from jaxskel._determination import UNDETERMINED_RESOLUTION
-from jaxskel._summary_text import undetermined_lines
+from jaxskel.joints._anchored_centres import MIN_EXERCISE_DEG
+from jaxskel.joints._determination import UNDETERMINED_RESOLUTION
+from jaxskel.result._summary import undetermined_lines
 
 NAN3 = [np.nan] * 3
 
@@ -119,8 +119,8 @@ def test_the_least_determined_direction_is_read_against_the_markers():
     res = [[0.30, 0.05, 0.01], [0.40, 0.20, 0.01], [0.50, 0.2, 0.1]]
     sk = _skeleton(res, _cosines(), placed=[1])
     sk.diagnostics["anchored"]["radial_cosines"] = np.array([[0.9, 0.1, 0.1], [0.2, 0.3, 0.9], NAN3])
-    np.testing.assert_allclose(jaxskel._determination.radial_share(sk), [0.9, 0.3, np.nan])
-    np.testing.assert_array_equal(jaxskel._determination.loose_directions(sk), [1, 1, 2])
+    np.testing.assert_allclose(jaxskel.joints._determination.radial_share(sk), [0.9, 0.3, np.nan])
+    np.testing.assert_array_equal(jaxskel.joints._determination.loose_directions(sk), [1, 1, 2])
 
 
 @pytest.mark.parametrize(
@@ -191,7 +191,7 @@ def test_the_summary_says_how_the_tree_was_chosen_and_how_close_the_runner_up_ca
     result, _ = short_arc
     text = result.summary()
     assert "tree: minimum spanning tree of the joint costs, the pose check exchanged none; rooted at its centre" in text
-    best = jaxskel._near_ties.runner_up(result.topology)
+    best = jaxskel.joints._near_ties.runner_up(result.topology)
     (p, c), (a, b) = best.edge, best.rival
     names = result.segment_names
     swap = f"{names[a]}-{names[b]} instead of {names[p]}-{names[c]}"

@@ -14,8 +14,9 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._batch_io import named_bones
-from jaxskel._cli import _machine_cache_dir, main
+from jaxskel.pipeline._batch_io import named_bones
+from jaxskel._runtime.compile_cache import machine_cache_dir
+from jaxskel.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +86,7 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     rigid = json.loads(back.diagnostics.attrs["rigid"])
     assert rigid["sweeps"] == fitted.skeleton.diagnostics["sweeps"]
     assert len(rigid["hinge_shift"]) == len(fitted.edges)
-    # how well the recording fixes each joint and bone (jaxskel._determination)
+    # how well the recording fixes each joint and bone (jaxskel.joints._determination)
     np.testing.assert_allclose(back.joints.resolution, fitted.joint_resolutions())
     assert np.isfinite(back.joints.resolution).all() and back.joints.undetermined.shape == (0,)
     np.testing.assert_allclose(back.skeleton.bone_uncertainty, jaxskel.bone_uncertainty(fitted.skeleton))
@@ -281,7 +282,7 @@ def test_cli_warnings_are_one_labelled_message(tmp_path, capsys):
     err = capsys.readouterr().err
     named = [line for line in err.splitlines() if line.startswith("jaxskel: warning (NonRigidMarkerWarning): markers")]
     assert len(named) == 1 and "n_segments=12" in named[0], err
-    assert "_cli.py" not in err and "fit_skeleton(" not in err
+    assert "cli.py" not in err and "fit_skeleton(" not in err
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
@@ -354,7 +355,7 @@ def test_two_trials_fit_together_and_export_bvh_per_trial(linkage_trial, tmp_pat
 
 
 def test_console_script_version():
-    out = subprocess.run([sys.executable, "-m", "jaxskel._cli", "--version"], capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-m", "jaxskel.cli", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.startswith("jaxskel ")
 
 
@@ -374,10 +375,10 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path):
 
 _CACHE_PROBE = """
 import jax, jax.numpy as jnp
-from jaxskel._cli import CACHE_MAX_BYTES, _enable_compile_cache
+from jaxskel._runtime.compile_cache import CACHE_MAX_BYTES, enable_compile_cache
 hits = []
 jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
-_enable_compile_cache()
+enable_compile_cache()
 assert jax.config.jax_compilation_cache_max_size == CACHE_MAX_BYTES
 print(float(jax.jit(lambda x: jnp.sin(x) * 3.0 + x**2)(1.5)), len(hits))
 """
@@ -394,7 +395,7 @@ def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
     (value0, hits0), (value1, hits1) = (r.stdout.split() for r in runs)
     assert value0 == value1 and int(hits0) == 0 and int(hits1) >= 1
     (machine,) = (tmp_path / "cache").iterdir()  # one subdirectory: this CPU and jaxlib
-    assert machine == _machine_cache_dir(tmp_path / "cache")
+    assert machine == machine_cache_dir(tmp_path / "cache")
     entries = list(machine.glob("*-cache"))
     assert entries and (machine / ".lockfile").exists()
     off = subprocess.run([sys.executable, "-c", _CACHE_PROBE.replace("assert jax.config", "assert not jax.config")],
@@ -405,22 +406,21 @@ def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
 def test_compile_cache_is_kept_apart_per_cpu_and_jaxlib(monkeypatch):
     """XLA:CPU compiles for the host's instruction set and JAX's cache key leaves it out,
     so a cache shared by different CPUs (a cluster's home directory) must not mix them."""
-    from jaxskel import _cli
-
+    from jaxskel._runtime import compile_cache
     base = Path("/shared/cache")
-    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
-    here = _cli._machine_cache_dir(base)
-    assert here.parent == base and here == _cli._machine_cache_dir(base)  # stable
-    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2")
-    assert _cli._machine_cache_dir(base) != here  # a CPU without AVX-512
-    monkeypatch.setattr(_cli, "_cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    here = compile_cache.machine_cache_dir(base)
+    assert here.parent == base and here == compile_cache.machine_cache_dir(base)  # stable
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2")
+    assert compile_cache.machine_cache_dir(base) != here  # a CPU without AVX-512
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
     import jaxlib
 
     monkeypatch.setattr(jaxlib, "__version__", "0.0.1")
-    assert _cli._machine_cache_dir(base) != here  # another jaxlib
+    assert compile_cache.machine_cache_dir(base) != here  # another jaxlib
     # the real identity names the instruction set (x86 flags or aarch64 features)
     monkeypatch.undo()
-    identity = _cli._cpu_identity()
+    identity = compile_cache.cpu_identity()
     assert identity and ("flags=" in identity or "features=" in identity or "processor=" in identity)
 
 

@@ -1,4 +1,4 @@
-"""Hinge centres along their axes: the limb plane of the neighbouring joints (jaxskel._hinge_centres)."""
+"""Hinge centres along their axes: the limb plane of the neighbouring joints (jaxskel.skeleton._hinge_centres)."""
 
 import warnings
 
@@ -8,7 +8,7 @@ from helpers import random_rotation
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
+from jaxskel.skeleton._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
 from jaxskel.synth._rotation import rotvec_to_matrix
 
 

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from jaxskel import InputError, SchemaError, Trial, UnitsWarning, load, save_trial
-from jaxskel._atomic import atomic_output
-from jaxskel._io import infer_up_axis
-from jaxskel._trial import rotation_between_axes
+from jaxskel.io._atomic import atomic_output
+from jaxskel.io._load import infer_up_axis
+from jaxskel.io._trial import rotation_between_axes
 
 # ----------------------------------------------------------------- helpers
 

@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxskel import DegenerateMotionError, InputError
-from jaxskel._jointcost import solve_joint, solve_joints
+from jaxskel.joints._cost import solve_joint, solve_joints
 
 NOISE = 1e-3
 FRAMES = 400
@@ -324,7 +324,7 @@ def test_pair_problem_blocks_match_autodiff_and_block_solve_the_dense_system():
     # The LM's planar kernels (coordinate planes, symmetric blocks as six planes) against
     # jax.hessian / jax.grad of f(c, r) = 1/2 sum beta [(d - r)^2 + alpha d], with a
     # missing marker and a frame without weight (A = I there, zero right-hand side).
-    from jaxskel._jointcost_lm import PairProblem, block_solve
+    from jaxskel.joints._cost_lm import PairProblem, block_solve
 
     rng = np.random.default_rng(3)
     frames, k = 6, 4

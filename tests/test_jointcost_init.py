@@ -1,4 +1,4 @@
-"""Starting points of the joint solve (jaxskel._jointcost_init): the consistency start for
+"""Starting points of the joint solve (jaxskel.joints._cost_init): the consistency start for
 pairs that never show five markers, where the algebraic start has nothing to solve."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from test_jointcost import _rotations, pair, rmse
 
-from jaxskel._jointcost import solve_joint
-from jaxskel._jointcost_init import consistency_start
+from jaxskel.joints._cost import solve_joint
+from jaxskel.joints._cost_init import consistency_start
 
 
 def _start(markers, mask=None):

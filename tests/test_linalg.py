@@ -1,11 +1,11 @@
-"""Plain-XLA Cholesky solves (jaxskel._linalg) against numpy, batched and differentiated."""
+"""Plain-XLA Cholesky solves (jaxskel._math.linalg) against numpy, batched and differentiated."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxskel  # noqa: F401  (x64)
-from jaxskel._linalg import cholesky, spd_solve
+from jaxskel._math.linalg import cholesky, spd_solve
 
 
 def _spd(rng, n, cond=1e6):
@@ -48,7 +48,7 @@ def test_batched_and_differentiable():
 
 def test_joint_solver_uses_no_lapack_custom_call():
     """The hot while loop must not contain LAPACK kernels (they deadlock XLA:CPU's 2-thread pool)."""
-    from jaxskel._jointcost_lm import block_solve
+    from jaxskel.joints._cost_lm import block_solve
 
     f = jax.jit(block_solve)
     args = (jnp.tile(jnp.eye(3), (4, 1, 1)), jnp.ones((4, 3, 5)), jnp.full(5, 10.0), jnp.ones((4, 3)), jnp.ones(5))
@@ -60,7 +60,7 @@ def test_ik_solver_uses_no_lapack_custom_call():
     """IK chunks run on several host threads at once: no LAPACK kernels may be in them."""
     import numpy as np
 
-    from jaxskel._ik_batch import batch_model, solve_chunk
+    from jaxskel.skeleton._ik_batch import batch_model, solve_chunk
 
     edges = np.array([[0, 1], [1, 2]])
     joint_offsets = np.array([[[0.0, 0.0, -0.2], [0.0, 0.0, 0.2]], [[0.0, 0.0, -0.2], [0.0, 0.0, 0.2]]])
@@ -75,7 +75,7 @@ def test_ik_solver_uses_no_lapack_custom_call():
 
 
 def test_jacobi_eigenvalues_match_numpy():
-    from jaxskel._linalg import eigvalsh, generalised_eigvalsh
+    from jaxskel._math.linalg import eigvalsh, generalised_eigvalsh
 
     rng = np.random.default_rng(2)
     for n in (1, 2, 3, 8, 17):
@@ -98,7 +98,7 @@ def test_jacobi_eigenvalues_match_numpy():
 def test_whole_joint_solve_has_no_lapack_custom_call():
     """No LAPACK kernel anywhere in the compiled joint solve (start, loop, identifiability):
     two at once deadlock XLA:CPU's pool even inside one execution."""
-    from jaxskel._jointcost import _settings, _solve_batch
+    from jaxskel.joints._cost import _settings, _solve_batch
 
     settings, controls = _settings("lm", 20, None, None, jnp.float64)
     p, f, k = 2, 16, 4
@@ -109,7 +109,7 @@ def test_whole_joint_solve_has_no_lapack_custom_call():
 
 
 def test_jacobi_eigenvectors_match_numpy():
-    from jaxskel._linalg import eigh
+    from jaxskel._math.linalg import eigh
 
     rng = np.random.default_rng(3)
     for n in (1, 3, 4, 9):
@@ -123,7 +123,7 @@ def test_jacobi_eigenvectors_match_numpy():
 
 def test_consistency_start_has_no_lapack_custom_call():
     """The four-marker start runs before the solve on the same device (docs/design.md)."""
-    from jaxskel._jointcost_init import consistency_start_batched
+    from jaxskel.joints._cost_init import consistency_start_batched
 
     hlo = consistency_start_batched.lower(jnp.ones((2, 16, 4, 3)), jnp.ones((2, 16, 4), bool)).as_text()
     assert "lapack" not in hlo.lower() and "custom_call" not in hlo

@@ -1,4 +1,4 @@
-"""Low-pass filtering of the markers before inverse kinematics (jaxskel._lowpass).
+"""Low-pass filtering of the markers before inverse kinematics (jaxskel.clean._lowpass).
 
 Known answers on smooth trajectories with white noise of known size, gap and trial
 boundaries that must not leak, invariance to rigid motions of the recording, and the
@@ -14,7 +14,7 @@ from test_topology import true_joint_index
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._cli import main
+from jaxskel.cli import main
 
 RATE = 120.0
 

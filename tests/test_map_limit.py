@@ -1,4 +1,4 @@
-"""jaxskel._map_limit: a long-lived process is kept under the kernel's limit on memory
+"""jaxskel._runtime.map_limit: a long-lived process is kept under the kernel's limit on memory
 mappings (vm.max_map_count), past which XLA dies with a segmentation fault."""
 
 import sys
@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 import jaxskel
-from jaxskel import _map_limit
-
+from jaxskel._runtime import map_limit as _map_limit
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/maps is Linux's")
 
 

@@ -1,4 +1,4 @@
-"""Readable segment names from marker labels (jaxskel._names): the rule, uniqueness, and
+"""Readable segment names from marker labels (jaxskel.segment._names): the rule, uniqueness, and
 that a fit names its segments by it without its labels changing the skeleton."""
 
 import re
@@ -9,7 +9,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._names import group_name, names_from_markers, segment_names
+from jaxskel.segment._names import group_name, names_from_markers, segment_names
 
 
 @pytest.mark.parametrize(

@@ -11,8 +11,8 @@ import pytest
 from calibration_motions import main_movements, perturbed, rotvec_to_matrix, truth_arrays, with_default_pose
 
 from jaxskel import DegenerateMotionError, InputError, normalize, synth
-from jaxskel._geometry import matrix_to_quat, quat_to_matrix
-from jaxskel._normalize import default_pose_terms, normalize_arrays, write_normalized
+from jaxskel._math.geometry import matrix_to_quat, quat_to_matrix
+from jaxskel.sd06._normalize import default_pose_terms, normalize_arrays, write_normalized
 
 RATE = 30.0
 DURATION = 14.0  # 420 frames: the same bucket as tests/test_parameterize.py

@@ -12,10 +12,10 @@ from calibration_motions import main_movements, perturbed, rotvec_to_matrix, tru
 from matplotlib.figure import Figure
 
 from jaxskel import DegenerateMotionWarning, InputError, Normalization, Parameterization, parameterize, synth
-from jaxskel._geometry import matrix_to_quat
-from jaxskel._normalize import normalize_arrays
-from jaxskel._parameterize import parameterize_arrays, parameterize_normalized, write_parameters
-from jaxskel._plots_params import plot_angles, plot_joint_spheres, plot_speed_histograms
+from jaxskel._math.geometry import matrix_to_quat
+from jaxskel.sd06._normalize import normalize_arrays
+from jaxskel.sd06._parameterize import parameterize_arrays, parameterize_normalized, write_parameters
+from jaxskel.plots._parameter_plots import plot_angles, plot_joint_spheres, plot_speed_histograms
 
 RATE = 30.0  # main_movements at 30 Hz: 420 frames, the bucket of tests/test_normalize.py
 BODY = synth.full_body(seed=0)

@@ -1,4 +1,4 @@
-"""The pose check of the tree (jaxskel._pose_check): joints as points fixed in both segments."""
+"""The pose check of the tree (jaxskel.joints._pose_check): joints as points fixed in both segments."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 from helpers import random_rotation
 
 from jaxskel import PoseExchange, synth
-from jaxskel._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
-from jaxskel._topology import MIN_PAIR_FRAMES
+from jaxskel.joints._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
+from jaxskel.joints._topology import MIN_PAIR_FRAMES
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Saved exported programs (jaxskel._program_cache): same answers as the jitted call,
+"""Saved exported programs (jaxskel._runtime.program_cache): same answers as the jitted call,
 one program per distinct trace, loaded (not re-traced) by a fresh process, robust to
 torn files, bounded, and out of the way of differentiation."""
 
@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxskel import _program_cache, synth
+from jaxskel import synth
+from jaxskel._runtime import program_cache as _program_cache
 
 
 class _Model(eqx.Module):
@@ -143,7 +144,7 @@ import sys, jax
 exports = []
 export = jax.export.export
 jax.export.export = lambda *a, **k: exports.append(1) or export(*a, **k)
-from jaxskel._cli import main
+from jaxskel.cli import main
 code = main(["fit", sys.argv[1], "-o", sys.argv[2], "--quiet"])
 print("exports", len(exports))
 sys.exit(code)

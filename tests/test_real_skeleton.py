@@ -135,7 +135,7 @@ def test_cmu_legs_with_automatic_segment_count():
     consistency start of four-marker pairs), and so does the head: the joint costs put
     it on the left upper arm, whose shoulder sweeps 5 degrees in this take (7.06 against
     8.72 mm^2 to the thorax, whose markers bend with the spine), and the pose check
-    (``jaxskel._pose_check``) moves it to the thorax, where a centre fixed in both
+    (``jaxskel.joints._pose_check``) moves it to the thorax, where a centre fixed in both
     segments fits (35 against 898 mm^2). Every joint of the tree is anatomical.
     Against the .asf (printed): left thigh +0 mm, right shank +8 mm, left shank
     -30 mm, right thigh +74 mm. With the paper's per-frame joint centres the hips sat in
@@ -292,7 +292,7 @@ def test_bundled_sample_tree_is_anatomical_with_default_settings():
     """The demo's recording (Clouthier's 62-marker cluster set, kneel to prone), default
     settings: every joint joins adjacent body parts and no marker sits with a body part
     it is not on. The acromion, hand and ankle markers are one-marker segments; before
-    they were attachments (jaxskel._attachments) the right acromion marker was a hub
+    they were attachments (jaxskel.joints._attachments) the right acromion marker was a hub
     jointed to the thorax, the head and the right upper arm, and the head hung from it
     (head-acromion 7.1 against head-thorax 13.0 mm^2: one marker tests one distance)."""
     from human_markers import misplaced_markers

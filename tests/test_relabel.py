@@ -11,11 +11,11 @@ from scipy.optimize import linear_sum_assignment
 
 import jaxskel
 from jaxskel import DegenerateMotionError, InputError, synth
-from jaxskel._geometry import horn_align
-from jaxskel._relabel import needs_merging
-from jaxskel._relabel_assign import ChainProblem, spectral_clusters
-from jaxskel._relabel_fragments import split_fragments
-from jaxskel._relabel_distance import sampled_min_distance
+from jaxskel._math.geometry import horn_align
+from jaxskel.relabel._merge import needs_merging
+from jaxskel.relabel._assign import ChainProblem, spectral_clusters
+from jaxskel.relabel._fragments import split_fragments
+from jaxskel.relabel._distance import sampled_min_distance
 
 AUTO = REAL / "auto_marker_label"
 

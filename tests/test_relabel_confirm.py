@@ -13,8 +13,8 @@ from test_relabel import AUTO, _load, assert_no_cooccurring_merge, label_accurac
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._relabel_confirm import fragment_offsets, skeleton_link_cost
-from jaxskel._relabel_fragments import split_fragments
+from jaxskel.relabel._confirm import fragment_offsets, skeleton_link_cost
+from jaxskel.relabel._fragments import split_fragments
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +155,7 @@ def test_fragment_offsets_match_brute_force():
     n, offset, mean_sq = (
         np.asarray(a) for a in fragment_offsets(np.where(present[..., None], x, 0.0), present, q, p, posed)
     )
-    rot = np.asarray(jaxskel._geometry.quat_to_matrix(q))
+    rot = np.asarray(jaxskel._math.geometry.quat_to_matrix(q))
     for kk in range(k):
         for ss in range(2):
             t = np.flatnonzero(present[:, kk] & posed[:, ss])

@@ -18,16 +18,16 @@ from scipy.spatial.transform import Rotation
 
 import jaxskel
 from jaxskel import ConvergenceWarning, DegenerateMotionError, InputError, synth
-from jaxskel import _ik as ik_module
-from jaxskel import _ik_batch as ik_batch
-from jaxskel._geometry import det3, horn_align, matrix_to_quat
-from jaxskel._ik import (
+from jaxskel.skeleton import _ik as ik_module
+from jaxskel.skeleton import _ik_batch as ik_batch
+from jaxskel._math.geometry import det3, horn_align, matrix_to_quat
+from jaxskel.skeleton._ik import (
     forward_kinematics,
     ik_solve,
     inverse_kinematics,
     kinematic_chain,
 )
-from jaxskel._rigid import SOLVED_JOINT_WEIGHT, Skeleton, fit_rigid
+from jaxskel.skeleton._rigid_fit import SOLVED_JOINT_WEIGHT, Skeleton, fit_rigid
 
 NOISE = 0.002
 SOFT = 0.003
@@ -359,7 +359,7 @@ def test_gaps_at_a_junction_of_trials_fitted_together_are_filled_within_each_tri
     right foot hidden over the last 40 frames of the first and the first 40 of the second.
     Each side holds its own recording's nearest foot pose; before, the gap was slerped
     from one recording's pose to the other's, across a junction that is not motion."""
-    from jaxskel._segment import combine_trials
+    from jaxskel.segment._spectral import combine_trials
 
     trial, truth, _, sk, _ = seed0
     foot = truth.segment_names.index("r_foot")

@@ -16,7 +16,7 @@ from helpers import (
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._segment import _mend, _score, distance_std, white_noise
+from jaxskel.segment._spectral import _mend, _score, distance_std, white_noise
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -297,7 +297,7 @@ def test_a_recording_that_moves_no_joint_is_one_segment_and_the_fit_says_why(tmp
     moving, _ = synth.simulate(synth.full_body(seed=0), duration=6.0, seed=0, noise=0.002)
     assert jaxskel.segment_markers(moving).n_segments == 15
     # the command line: one line on stderr, exit status 2, no result file
-    from jaxskel._cli import main
+    from jaxskel.cli import main
 
     src = jaxskel.save_trial(still, tmp_path / "still.h5")
     assert main(["fit", str(src), "-o", str(tmp_path / "out.h5"), "--quiet"]) == 2

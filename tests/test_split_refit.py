@@ -1,4 +1,4 @@
-"""Growing the automatic segment count after the rigid fit (:mod:`jaxskel._split_refit`):
+"""Growing the automatic segment count after the rigid fit (:mod:`jaxskel.pipeline._split_refit`):
 when it grows, which fit is kept, which warnings the user sees. The fits are stubs here;
 the end-to-end case (a random tree whose eigengap joins two segments) is in
 ``test_fit_cli.py``."""
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from jaxskel import synth
-from jaxskel._fit import PreparedFit
-from jaxskel._segment import segment_markers
-from jaxskel._split_refit import MAX_SPLITS, crowded_nonrigid, fit_growing_count
+from jaxskel.pipeline._fit import PreparedFit
+from jaxskel.segment._spectral import segment_markers
+from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid, fit_growing_count
 
 
 @dataclasses.dataclass

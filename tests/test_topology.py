@@ -9,12 +9,12 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 
 import jaxskel
 from jaxskel import synth
-from jaxskel._attachments import attachment_tree
-from jaxskel._fit import _pose_exchange_text
-from jaxskel._near_ties import rival_edges, runner_up
-from jaxskel._pose_check import PoseExchange
-from jaxskel._summary_text import tree_lines
-from jaxskel._tree import mst_edges, root_tree, tree_path
+from jaxskel.joints._attachments import attachment_tree
+from jaxskel.pipeline._fit import _pose_exchange_text
+from jaxskel.joints._near_ties import rival_edges, runner_up
+from jaxskel.joints._pose_check import PoseExchange
+from jaxskel.result._summary import tree_lines
+from jaxskel.joints._tree import mst_edges, root_tree, tree_path
 
 
 def undirected(edges):
@@ -370,8 +370,7 @@ def test_tree_pass_tolerance_matches_a_tight_solve(body_fit):
     the crawl along hinge axes (placed later by the rigid stage), never move a ball joint.
     Measured (seed 0): steps 513 -> 297, costs within 3e-7 relative, the six determined
     joints within 0.005 mm RMS (stopping at 1e-5 instead: costs 4e-4 off, 0.02 mm)."""
-    from jaxskel import _topology
-
+    from jaxskel.joints import _topology as _topology
     _, _, result = body_fit
     loose = result.topology  # the fit's own tree pass, rows = edges = the problem's rows
     problem = _topology.tree_problem(result.trial, result.segmentation, loose.pair_costs)
@@ -439,7 +438,7 @@ def test_lone_hand_marker_next_to_a_two_marker_forearm_is_its_attachment(tmp_pat
     carry three markers, too few for a joint cost, and the plain spanning tree jointed each
     hand to the upper arm, where a cost can be computed. The hand marker is most rigid with
     the forearm's markers (median distance std 13-16 mm against 65-91 mm to the upper
-    arm's), so it hangs from the forearm as an attachment (jaxskel._attachments), its joint
+    arm's), so it hangs from the forearm as an attachment (jaxskel.joints._attachments), its joint
     placed by the distance prior alone: the tree is exact, nothing is left untested, and
     the attachments are reported and saved."""
     body = synth.full_body(seed=0, markers_per_segment={"l_hand": 1, "r_hand": 1, "l_forearm": 2, "r_forearm": 2})

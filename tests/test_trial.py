@@ -5,7 +5,7 @@ import pytest
 
 import jaxskel
 from jaxskel import InputError, Trial
-from jaxskel._trial import rotation_between_axes
+from jaxskel.io._trial import rotation_between_axes
 
 
 def make(f=10, m=4, seed=0):
@@ -72,7 +72,7 @@ def test_selection():
 def test_selecting_frames_of_combined_trials_keeps_their_bounds_true():
     """``trial_bounds`` (trials fitted together) follow a frame selection: cleaning and IK
     read them, and stale ranges would cut or bridge the wrong frames."""
-    from jaxskel._segment import combine_trials
+    from jaxskel.segment._spectral import combine_trials
 
     both = combine_trials([make(10), make(5, seed=1), make(10, seed=2)])
     assert both.metadata["trial_bounds"] == ((0, 10), (10, 15), (15, 25))
@@ -98,7 +98,7 @@ def test_arrays_have_no_nan_and_padding_keeps_data():
 @pytest.mark.parametrize("src", ["x", "y", "z", "-x", "-y", "-z"])
 @pytest.mark.parametrize("dst", ["z", "y", "-z"])
 def test_rotation_between_axes_is_proper_and_maps_axis(src, dst):
-    from jaxskel._trial import _AXIS_VECTORS
+    from jaxskel.io._trial import _AXIS_VECTORS
 
     r = rotation_between_axes(src, dst)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)

@@ -1,6 +1,6 @@
 """Reference joint costs, MST topology and tree joints (Kirk et al. 2005, §3.2) in numpy/scipy.
 
-The same objective as :mod:`jaxskel._jointcost`: for two marker groups (K markers, F
+The same objective as :mod:`jaxskel.joints._cost`: for two marker groups (K markers, F
 frames) and a joint trajectory ``c_f``,
 
     Q = 1/K sum_k [ var_f |c_f - m_fk| + alpha mean_f |c_f - m_fk| ],
@@ -19,7 +19,7 @@ difference. Frames with fewer than three present markers carry no information an
 are left out of the unknowns (their joint is NaN).
 
 The start is the same closed-form algebraic fit jaxskel uses
-(:mod:`jaxskel._jointcost_init`), ported to numpy: squaring |c - m|^2 = s_k makes
+(:mod:`jaxskel.joints._cost_init`), ported to numpy: squaring |c - m|^2 = s_k makes
 the problem linear and eliminating each frame's 3x3 block leaves a K x K system.
 Pairs that never show five markers take jaxskel's consistency start instead (the
 same 54 starting points, ``u_f = |c_f|^2`` solved for the radii by

@@ -1,0 +1,364 @@
+"""The ``jaxskel`` command line.
+
+    jaxskel demo [-o DIR]                     fit the bundled real recording
+    jaxskel fit INPUT... -o OUT.h5 [options]  fit one subject (several trials fit together)
+    jaxskel info FILE                         describe a recording or a result file
+    jaxskel fit-batch DIR -o OUTDIR [options] fit every recording in a folder (resumable;
+                                              --scheduler ADDRESS / --workers N: Dask)
+
+Errors the user can fix (bad file, wrong units, degenerate motion) print one
+clear line and exit with status 2; nothing the user gave is overwritten
+unless ``--overwrite`` is passed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from ._runtime.compile_cache import enable_compile_cache
+
+__all__ = ["main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="jaxskel",
+        description="Automatic articulated skeletons from optical motion-capture markers (JAX).",
+    )
+    p.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = p.add_subparsers(dest="command")
+
+    def fit_options(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
+        sp.add_argument("--root", default=None, help="root segment index or a marker label on it")
+        sp.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto",
+                        help="merge relabelled passive markers (default: auto)")
+        sp.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
+        sp.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
+        sp.add_argument("--method", choices=["lm", "ncg"], default="lm", help="joint solver (default: lm)")
+        sp.add_argument("--hinge-centres", choices=["limb_plane", "prior"], default="limb_plane",
+                        help="a hinge's centre along its axis: in the plane of its neighbouring joints "
+                             "(default) or where the distance prior puts it (the paper)")
+        sp.add_argument("--joint-centres", choices=["anchored", "per_frame"], default="anchored",
+                        help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
+                             "frame along the directions the data resolve (default), or one per frame (the paper)")
+        sp.add_argument("--no-pose-check", action="store_true",
+                        help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
+                             "segments as attachments); by default a joint the segments' poses reject (a centre "
+                             "fixed in both, or a sparse segment's markers about a centre fixed in the other) "
+                             "is exchanged")
+        sp.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
+                        help="low-pass filter of the markers the IK poses: a cutoff per marker from its own "
+                             "noise (auto, default), none, or a cutoff in Hz")
+        sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
+        sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
+        sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
+        sp.add_argument("--parameterize", action="store_true",
+                        help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
+        sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+        sp.add_argument("--seed", type=int, default=0)
+
+    fit = sub.add_parser("fit", help="fit a skeleton to one or more recordings of one subject")
+    fit.add_argument("inputs", nargs="+", type=Path, help=".c3d, .trc, .csv or .h5 recordings")
+    fit.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5)")
+    fit_options(fit)
+
+    demo = sub.add_parser("demo", help="fit the bundled real recording and write results")
+    demo.add_argument("-o", "--outdir", type=Path, default=Path("jaxskel-demo"), help="output folder")
+    demo.add_argument("--overwrite", action="store_true", default=True, help=argparse.SUPPRESS)
+    demo.add_argument("--quiet", action="store_true")
+
+    batch = sub.add_parser(
+        "fit-batch", help="fit every recording in a folder (batched, resumable; optional Dask cluster)",
+        description="Fit a skeleton to every recording under DIR: one result file per recording in OUTDIR "
+        "(sub-folders kept), a summary table OUTDIR/summary.csv, finished recordings skipped on a rerun.",
+    )
+    batch.add_argument("directory", type=Path, help="folder of .c3d/.trc/.csv/.h5 recordings (searched recursively)")
+    batch.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
+    batch.add_argument("--scheduler", default=None,
+                       help="Dask scheduler address (tcp://host:8786): fit on the cluster's workers")
+    batch.add_argument("--workers", type=int, default=None,
+                       help="start a local Dask cluster with this many worker processes (one per core)")
+    batch.add_argument("--batch-size", type=int, default=8, help="most trials solved together (default 8)")
+    batch.add_argument("--jobs", type=int, default=2, help="threads for reading/cleaning/writing (default 2)")
+    batch.add_argument("--bone", action="append", default=[], metavar="NAME=A,S,B[;A,S,B]",
+                       help="tabulate a bone by marker labels: on the segment of S, between its joints with the "
+                       "segments of A and B; ';' averages several (repeatable)")
+    batch.add_argument("--plot-bones", type=Path, default=None,
+                       help="plot the first two --bone lengths per subject (Kirk et al. 2005, Fig. 5)")
+    batch.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
+    batch.add_argument("--root", default=None, help="root segment index or a marker label on it")
+    batch.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto")
+    batch.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
+    batch.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
+    batch.add_argument("--method", choices=["lm", "ncg"], default="lm")
+    batch.add_argument("--seed", type=int, default=0)
+    batch.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
+                       help="low-pass filter of the markers the IK poses (default: auto, from each marker's noise)")
+    batch.add_argument("--no-pose-check", action="store_true",
+                       help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
+                            "segments as attachments)")
+    batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
+    batch.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    info = sub.add_parser("info", help="describe a recording or a result file")
+    info.add_argument("file", type=Path)
+    return p
+
+
+def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrite: bool) -> None:
+    """Before any work: no output names an input (even with ``--overwrite``), two outputs
+    are two files, none is a folder, an existing one is replaced only with ``--overwrite``,
+    and each one's folder, where it exists, is writable."""
+    import jaxskel
+
+    from .io._atomic import refuse_input
+
+    named: dict[str, str] = {}
+    for flag, path in outputs.items():
+        if path is None:
+            continue
+        refuse_input(path, inputs, flag)
+        key = os.path.abspath(path)
+        if key in named:
+            raise jaxskel.InputError(f"{named[key]} and {flag} both name {path}; give each output its own file")
+        named[key] = flag
+        if path.is_dir():
+            raise jaxskel.InputError(f"{flag} {path} is a folder; give a file name inside it")
+        if path.exists() and not overwrite:
+            raise jaxskel.InputError(f"{path} exists; pass --overwrite to replace it")
+        folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path("."))
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise jaxskel.InputError(f"cannot write {flag} {path}: the folder {folder} is not writable")
+
+
+def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
+    import jaxskel
+
+    quiet = getattr(args, "quiet", False)
+    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc}, args.overwrite)
+    if output.parent and not output.parent.exists():
+        output.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    trials = [jaxskel.load(p) for p in inputs]
+    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
+    result = jaxskel.fit_skeleton(
+        trials,
+        args.segments,
+        root=_root_arg(args.root),
+        clean_data=not args.no_clean,
+        merge_labels=merge,
+        method=args.method,
+        rigid=not args.no_rigid,
+        ik=not args.no_rigid,
+        seed=args.seed,
+        progress=not quiet,
+        hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
+        joint_centres=getattr(args, "joint_centres", "anchored"),
+        ik_lowpass=getattr(args, "ik_lowpass", "auto"),
+        pose_check=not getattr(args, "no_pose_check", False),
+    )
+    extra_groups = {}
+    if args.parameterize:
+        if result.motion is None:
+            raise jaxskel.InputError("--parameterize needs the rigid skeleton and IK; drop --no-rigid")
+        from .sd06._normalize import normalize, write_normalized
+        from .sd06._parameterize import parameterize, write_parameters
+
+        norm = normalize(result.skeleton, result.motion, up_axis=_up(result.trial.up_axis))
+        params = parameterize(result.skeleton, result.motion, norm)
+        extra_groups = {
+            "normalized": lambda g: write_normalized(g, norm),
+            "parameters": lambda g: write_parameters(g, params),
+        }
+    result.save(output, overwrite=args.overwrite, extra_groups=extra_groups)
+    written = [output]
+    if args.plot is not None:
+        from .plots._summary_plots import plot_summary
+
+        plot_summary(result, args.plot, overwrite=args.overwrite)
+        written.append(args.plot)
+    if args.bvh is not None:
+        if result.motion is None:
+            raise jaxskel.InputError("--bvh needs the rigid skeleton and IK; drop --no-rigid")
+        result.export_bvh(args.bvh, overwrite=args.overwrite)
+        written.append(args.bvh)
+    if args.trc is not None:
+        if result.motion is None:
+            raise jaxskel.InputError("--trc needs the rigid skeleton and IK; drop --no-rigid")
+        fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
+        jaxskel.save_trial(fitted, args.trc, overwrite=args.overwrite)
+        written.append(args.trc)
+    if not quiet:
+        print(result.summary())
+        print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _fit_batch(args: argparse.Namespace) -> int:
+    import jaxskel
+
+    from .pipeline._batch_io import parse_bone_spec
+
+    if not args.directory.is_dir():
+        raise jaxskel.InputError(f"{args.directory}: not a directory; fit-batch takes a folder of recordings")
+    bones = dict(parse_bone_spec(text) for text in args.bone)
+    if args.plot_bones is not None:
+        if len(bones) < 2:
+            raise jaxskel.InputError("--plot-bones needs two --bone NAME=A,S,B options (x and y)")
+        if args.plot_bones.exists() and not args.overwrite:
+            raise jaxskel.InputError(f"{args.plot_bones} exists; pass --overwrite to replace it")
+    if args.scheduler and args.workers:
+        raise jaxskel.InputError("give --scheduler or --workers, not both")
+    cluster = None
+    scheduler = args.scheduler
+    if args.workers:
+        try:
+            from distributed import LocalCluster
+        except ImportError:
+            raise jaxskel.InputError('--workers needs Dask: pip install "jaxskel[distributed]"') from None
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        scheduler = cluster.scheduler_address
+    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
+    try:
+        batch = jaxskel.fit_batch(
+            args.directory, args.outdir, n_segments=args.segments, root=_root_arg(args.root),
+            clean_data=not args.no_clean, merge_labels=merge, method=args.method, rigid=not args.no_rigid,
+            ik=not args.no_rigid, seed=args.seed, bones=bones, batch_size=args.batch_size, jobs=args.jobs,
+            scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet, ik_lowpass=args.ik_lowpass,
+            pose_check=not args.no_pose_check,
+        )
+    finally:
+        if cluster is not None:
+            cluster.close()
+    if args.plot_bones is not None:
+        x, y = list(bones)[:2]
+        jaxskel.plot_bone_lengths(batch, x, y, path=args.plot_bones, overwrite=args.overwrite)
+    counts = batch.counts()
+    if not args.quiet:
+        print(f"{len(batch)} trials: {counts.get('ok', 0)} fitted, {counts.get('skipped', 0)} already done, "
+              f"{counts.get('failed', 0)} failed in {batch.seconds:.1f} s; summary: {batch.summary}")
+    for o in batch.failed:
+        print(f"jaxskel: {o.name}: {o.error}", file=sys.stderr)
+    return 1 if batch.failed else 0
+
+
+def _cutoff_arg(text: str) -> float | str | None:
+    """``--ik-lowpass``: ``auto``, ``none`` or a positive frequency in Hz."""
+    if text.lower() in ("auto", "none"):
+        return None if text.lower() == "none" else "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected auto, none or a cutoff in Hz, got {text!r}")
+    return value
+
+
+def _root_arg(root: str | None) -> int | str | None:
+    if root is None:
+        return None
+    return int(root) if root.lstrip("-").isdigit() else root
+
+
+def _up(axis: str) -> str:
+    return "z" if axis == "unknown" else axis
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from .io._sample import sample_path
+
+    outdir = args.outdir
+    outdir.mkdir(parents=True, exist_ok=True)
+    ns = argparse.Namespace(
+        segments=None, root=None, merge_labels="auto", no_clean=False, no_rigid=False, method="lm",
+        plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
+        parameterize=False, overwrite=True, quiet=args.quiet, seed=0,
+    )
+    if not args.quiet:
+        print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")
+    return _fit([sample_path()], outdir / "result.h5", ns)
+
+
+def _info(path: Path) -> int:
+    import jaxskel
+
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                is_result = "schema_version" in f.attrs
+        except OSError as exc:
+            raise jaxskel.InputError(f"{path}: cannot read as HDF5 ({exc})") from None
+        if is_result:
+            r = jaxskel.load_result(path)
+            print(f"result file {path} (schema {r.attrs['schema_version']}, jaxskel {r.attrs['jaxskel_version']})")
+            print(f"  source: {r.attrs['source']}  rate: {r.attrs['rate']} Hz")
+            root = int(r.topology.root)
+            print(f"  {len(r.markers.labels)} input markers, {len(r.segments.names)} segments, "
+                  f"{len(r.topology.edges)} joints, root {r.segments.names[root]} (segment {root})")
+            print(f"  segments: {', '.join(r.segments.names)}")
+            print(f"  groups: {', '.join(r.keys())}")
+            return 0
+    trial = jaxskel.load(path)
+    print(trial)
+    print(f"  labels: {', '.join(trial.labels)}")
+    present = trial.mask.mean(axis=0)
+    gappy = [lab for lab, p in zip(trial.labels, present) if p < 1]
+    print(f"  {len(gappy)} markers with gaps; metadata: {dict(trial.metadata)}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.version:
+        from ._version import __version__
+
+        print(f"jaxskel {__version__}")
+        return 0
+    if args.command is None:
+        _parser().print_help()
+        return 1
+    enable_compile_cache()
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning
+        return _run(args)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """Warnings as a command line tool says them: one labelled message, no source line."""
+    print(f"jaxskel: warning ({category.__name__}): {message}", file=sys.stderr if file is None else file)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ._errors import JaxskelError
+
+    try:
+        if args.command == "fit":
+            return _fit(args.inputs, args.output, args)
+        if args.command == "demo":
+            return _demo(args)
+        if args.command == "info":
+            return _info(args.file)
+        if args.command == "fit-batch":
+            return _fit_batch(args)
+    except JaxskelError as exc:
+        print(f"jaxskel: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxskel: interrupted; no partial output was left behind", file=sys.stderr)
+        return 130
+    return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""jaxskel's own trial file: HDF5 that round-trips a :class:`~jaxskel.Trial` exactly.
+
+Layout (``jaxskel_trial_version`` = 1):
+
+==========================  ============================================
+``/positions``              (F, M, 3) float64, metres, NaN = missing
+``/labels``                 (M,) UTF-8 strings
+attribute ``rate``          frames per second
+attribute ``up_axis``       one of ``x y z -x -y -z unknown``
+attribute ``source``        where the trial came from
+attribute ``units``         ``"m"``
+attribute ``metadata``      the trial's metadata as a JSON object
+attribute ``jaxskel_trial_version``, ``jaxskel_version``
+==========================  ============================================
+
+Reading validates the version (a newer one is a :class:`~jaxskel.SchemaError`)
+and the shapes; anything h5py raises becomes an :class:`~jaxskel.InputError`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ._atomic import atomic_output
+from .._errors import InputError, SchemaError
+from ._load import RawRecording, Units
+from ._trial import UP_AXES, Trial
+
+__all__ = ["TRIAL_VERSION", "read_h5", "write_h5"]
+
+#: Version of the layout above; bump it when the layout changes incompatibly.
+TRIAL_VERSION = 1
+
+
+def write_h5(trial: Trial, file: Path, *, overwrite: bool = False) -> None:
+    """Write ``trial`` in the layout of the module docstring (gzip-compressed positions)."""
+    from .._version import __version__
+
+    # "file" is where a load read the trial from: set anew by every load, never stored
+    metadata = json.dumps(_jsonable({k: v for k, v in trial.metadata.items() if k != "file"}))
+    with atomic_output(file, overwrite) as tmp, h5py.File(tmp, "w") as h5:
+        h5.attrs["jaxskel_trial_version"] = TRIAL_VERSION
+        h5.attrs["jaxskel_version"] = __version__
+        h5.attrs["rate"] = float(trial.rate)
+        h5.attrs["up_axis"] = trial.up_axis
+        h5.attrs["source"] = trial.source
+        h5.attrs["units"] = "m"
+        h5.attrs["metadata"] = metadata
+        compress = {"compression": "gzip", "shuffle": True} if trial.positions.size else {}
+        h5.create_dataset("positions", data=np.asarray(trial.positions, np.float64), **compress)
+        h5.create_dataset(
+            "labels", data=np.array(trial.labels, dtype=object), dtype=h5py.string_dtype()
+        )
+
+
+def read_h5(file: Path, *, units: str | None = None) -> RawRecording:
+    """Read a trial written by :func:`write_h5`."""
+    if units is not None:
+        raise InputError(
+            f"{file}: units= does not apply to HDF5 trials, which are always stored in metres"
+        )
+    try:
+        h5 = h5py.File(file, "r")
+    except Exception as err:  # h5py raises OSError (and others) for non-HDF5/damaged files
+        raise InputError(f"cannot read {file}: not a valid HDF5 file ({err})") from None
+    try:
+        with h5:
+            return _parse(h5, file)
+    except (InputError, SchemaError):
+        raise
+    except Exception as err:  # a damaged file fails while reading a dataset
+        raise InputError(
+            f"cannot read {file}: damaged HDF5 trial ({type(err).__name__}: {err})"
+        ) from None
+
+
+def _parse(h5: h5py.File, file: Path) -> RawRecording:
+    attrs = h5.attrs
+    if "jaxskel_trial_version" not in attrs:
+        if "schema_version" in attrs:
+            raise InputError(
+                f"{file} is a jaxskel result file, not a trial; read it with jaxskel.load_result"
+            )
+        raise InputError(
+            f"{file} is not a jaxskel trial (no 'jaxskel_trial_version' attribute); "
+            "trials are written by jaxskel.save_trial / Trial.save"
+        )
+    version = int(np.asarray(attrs["jaxskel_trial_version"]).item())
+    if version > TRIAL_VERSION or version < 1:
+        raise SchemaError(
+            f"{file} uses trial format version {version}; this jaxskel reads version "
+            f"{TRIAL_VERSION}. Upgrade jaxskel (or re-save the trial with this version)."
+        )
+    for name in ("positions", "labels"):
+        if name not in h5 or not isinstance(h5[name], h5py.Dataset):
+            raise InputError(
+                f"{file}: jaxskel trial without a '{name}' dataset; the file is damaged"
+            )
+    positions = np.asarray(h5["positions"][()], dtype=np.float64)
+    labels = tuple(
+        v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in h5["labels"][()].ravel()
+    )
+    if positions.ndim != 3 or positions.shape[-1] != 3 or positions.shape[1] != len(labels):
+        raise InputError(
+            f"{file}: positions have shape {positions.shape} for {len(labels)} labels; "
+            "expected (frames, labels, 3)"
+        )
+    for name in ("rate", "up_axis"):
+        if name not in attrs:
+            raise InputError(
+                f"{file}: jaxskel trial without the '{name}' attribute; the file is damaged"
+            )
+    up_axis = _text(attrs["up_axis"])
+    if up_axis not in UP_AXES:
+        raise InputError(f"{file}: invalid up_axis attribute {up_axis!r}")
+    try:
+        metadata = json.loads(_text(attrs.get("metadata", "{}")))
+    except json.JSONDecodeError:
+        raise InputError(f"{file}: the metadata attribute is not valid JSON") from None
+    if not isinstance(metadata, dict):
+        raise InputError(f"{file}: the metadata attribute is not a JSON object")
+    return RawRecording(
+        positions=positions,
+        labels=labels,
+        rate=float(np.asarray(attrs["rate"]).item()),
+        units=Units(1.0, "m", "file"),
+        first_frame=int(metadata.get("first_frame", 1)),
+        declared_up_axis=up_axis,
+        strip_prefixes=False,
+        source=_text(attrs.get("source", str(file))),
+        provenance=metadata,
+    )
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+def _jsonable(value: Any) -> Any:
+    """Metadata as plain JSON types (mappings, sequences, numbers, strings, None)."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set, frozenset)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)

@@ -1,0 +1,245 @@
+"""The tree's joints checked against the segments' poses: points fixed in both frames.
+
+Kirk et al.'s joint cost (§3.2) gives the joint its own position ``j_f`` in every frame
+and asks only that marker-joint distances stay constant. The relaxation is what lets the
+method test a joint on segments of one or two markers, but it lets ``j_f`` wander with
+whatever the distances do not pin down, and it charges a segment's own non-rigidity to
+every joint the segment is tried with. CMU 02_05: the thorax group (STRN, T10, CLAV,
+C7) bends with the spine, its markers' distances to any neck point vary by 24-26 mm^2,
+and the head's cheapest joint is with the left upper arm group (LSHO, LUPA, LELB), whose
+shoulder turns 5 degrees in the take (normalised joint costs 7.06 against 8.72 mm^2).
+
+A joint is a point fixed in both segments. Where each segment of a pair carries three
+or more non-collinear markers, their marker-only poses (``R x + t`` maps a frame's
+markers onto the segment's mean cloud; :func:`jaxskel.joints._anchored_centres._segment_poses`)
+test that directly. The pair's *fixed-centre misfit* is
+
+    m(a, b) = min_{c_a, c_b} mean_f |R_a(f)^T (c_a - t_a(f)) - R_b(f)^T (c_b - t_b(f))|^2,
+
+the mean squared distance (m^2) between where the two segments put the joint, over the
+frames that pose both: a linear least-squares problem in six unknowns (SCoRE, Ehrig et
+al. 2006), solved for every pair at once from its 6 x 6 normal equations
+(pseudo-inverse: along a hinge's axis the centre is free and the misfit does not
+depend on it). Each pose averages over its segment's markers, so a segment that flexes
+moves its pose, not the test. On CMU 02_05: head-thorax 35 mm^2, head-left upper arm
+898 mm^2.
+
+The check overrules the joint costs only where the poses reject a tree joint clearly.
+Removing tree edge ``(p, c)`` cuts the tree in two; the lowest-misfit pair across the
+cut (of finite joint cost) is its rival. Where the rival's misfit is below the edge's
+divided by :data:`MISFIT_FACTOR` (2: the factor by which jaxskel calls a misfit changed;
+a centre's resolution is the distance over which its misfit doubles), the tree takes the
+rival instead; the worst-fitting edge first, until no edge has such a rival. Edges to a
+segment with fewer than three markers, or between segments posed together in too few
+frames, are never judged. Each exchange is reported (:class:`PoseExchange`, the
+summary, ``/topology/pose_exchanges``), and the near-tie test
+(:mod:`jaxskel.joints._near_ties`) does not count a rival the poses have rejected.
+
+Segments of one or two markers have no pose, and the check above never judges their
+joints; the joint costs made such a segment a hub where its one or two distances fitted
+several neighbours (CMU 01_01: the left upper arm, LUPA and LELB, jointed to the right
+upper arm, the head and the thorax at 13.4, 14.2 and 14.6 mm^2). A second pass judges
+exactly those edges, with the *anchored sphere misfit* (:func:`sphere_misfit`): how far
+the sparse segment's markers are from keeping constant distances to one centre fixed in
+the other segment's pose (01_01's left upper arm: 17 mm^2 about the thorax, 72 and 89
+mm^2 about the right upper arm and the head). Rivals across the cut are judged by the
+same statistic (the better of a pair's two directions), with the same factor, and
+one-marker attachments (:mod:`jaxskel.joints._attachments`) take no part. Exchanges are
+labelled ``test="sphere"``. Its effect on synthetic and real trees is measured by
+``bench/sweep_bodies.py`` and ``bench/real_trees.py`` (``docs/bench/``).
+
+Why a margin, and not simply a spanning tree of the misfit: where two segments barely
+turn against each other, any point is nearly fixed in both and the misfit is small
+whatever the joint. nimblephysics' squat moves both thighs alike (1.4-2.5 degrees
+between them): thigh-thigh fits to 69 mm^2 against 91 mm^2 for the true left hip, and a
+minimum spanning tree of the misfit took it.
+
+Measured (2026-11-26): the trees of the 15 real recordings of ``../shared/data/real``
+(``fit_skeleton(..., rigid=False, ik=False)``, automatic count), edges judged by marker
+names where the marker set is known: joints between non-adjacent body parts 32 -> 30.
+Corrected: CMU 02_05's head (from the left upper arm to the thorax, misfit 898 -> 35
+mm^2) and pycgm's (from the left forearm to the thorax; two more of its wrong joints
+move to other wrong ones: the left forearm and the left thigh, whose anatomical
+neighbours are not groups of their own there, go to the thorax); numediart 03_rolling's
+left upper arm (from the right upper arm to the trunk; names the scorer does not know).
+The squat's left shank and foot, which the joint costs hang from the left thigh through
+the foot (965 mm^2), go to the right thigh (39 mm^2), which the symmetric squat makes
+look fixed: wrong either way. No right joint is exchanged; ten recordings have no
+exchange, and a raw recording of unnamed slots has one nobody can judge. Synthetic
+bodies: none (``bench/sweep_bodies.py``, seeds 0-3 and 4-7, 58 bodies, every tree as
+before; full bodies at 1 and 3 mm soft tissue, seeds 0-3).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ._tree import _adjacency, _bfs
+
+__all__ = [
+    "MISFIT_FACTOR", "PoseExchange", "segment_poses", "fixed_centre_misfit", "sphere_misfit", "pose_checked_edges",
+]
+
+#: The poses overrule the joint costs only where the rival's misfit is below the tree
+#: edge's divided by this: the factor by which jaxskel calls a misfit changed (a centre's
+#: resolution is the distance over which its misfit doubles, :mod:`jaxskel.joints._determination`).
+MISFIT_FACTOR = 2.0
+
+
+class PoseExchange(NamedTuple):
+    """A joint-cost MST edge the pose check replaced (:func:`pose_checked_edges`).
+
+    ``removed`` is the MST's pair, ``added`` the pair the tree joints instead; ``misfit``
+    is their misfits under ``test`` and ``cost`` their joint costs (both m^2, removed
+    first). ``test`` is ``"fixed"`` (a centre fixed in both poses, :func:`fixed_centre_misfit`)
+    or ``"sphere"`` (an edge to a segment of one or two markers: those markers about a
+    centre fixed in the other's pose, :func:`sphere_misfit`).
+    """
+
+    removed: tuple[int, int]
+    added: tuple[int, int]
+    misfit: tuple[float, float]
+    cost: tuple[float, float]
+    test: str = "fixed"
+
+
+def segment_poses(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``R`` (F, S, 3, 3), ``t`` (F, S, 3), ``posed`` (F, S) on ``frames``: the anchored
+    refit's marker-only poses (``R x + t`` is a marker in its segment's frame), computed
+    on the whole recording with the same compiled alignment, identity where not posed."""
+    from ._anchored_centres import MAX_FRAMES, _segment_poses
+
+    rot, t, posed = (a[frames] for a in _segment_poses(x, mask, marker_segment, n_segments, MAX_FRAMES))
+    rot = np.where(posed[..., None, None], rot, np.eye(3))
+    t = np.where(posed[..., None], t, 0.0)
+    return rot, t, posed
+
+
+def sphere_misfit(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray,
+    min_frames: int, poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """(S, S) anchored sphere misfit (m^2): ``m[a, b]`` is how far ``b``'s markers are from
+    keeping constant distances to one centre fixed in ``a``'s pose,
+
+        m[a, b] = mean_{k in b} var_f |p_kf - c|,   p_kf = R_a(f) x_kf + t_a(f),
+
+    with ``c`` the shared centre of the algebraic sphere fit (|p|^2 = 2 p.c + d_k is
+    linear; with each ``d_k`` eliminated it is the 3 x 3 system sum_k sum_f p~ p~^T c =
+    1/2 sum_k sum_f p~ (|p|^2 - mean |p|^2), p~ = p - mean p, pseudo-inverse: a hinge
+    leaves the centre free along its axis, which changes no variance). It needs a pose
+    of ``a`` only, so it judges joints of segments of one or two markers, which
+    :func:`fixed_centre_misfit` cannot. Directed; ``inf`` where ``a`` has no pose, where
+    a marker of ``b`` is seen with ``a`` posed in fewer than ``min_frames`` of ``frames``,
+    and on the diagonal.
+    """
+    rot, t, posed = poses if poses is not None else segment_poses(x, mask, marker_segment, n_segments, frames)
+    x, mask = x[frames], mask[frames]
+    s = n_segments
+    seg = np.asarray(marker_segment)
+    onehot = (seg[:, None] == np.arange(s)[None]).astype(float)  # (M, S)
+    p = np.einsum("faij,fmj->fami", rot, np.where(mask[..., None], x, 0.0)) + t[:, :, None, :]  # (F, S, M, 3)
+    w = (posed[:, :, None] & mask[:, None, :]).astype(float)  # (F, S, M)
+    n = w.sum(axis=0)  # (S, M)
+    mean_p = np.einsum("fam,famj->amj", w, p) / np.maximum(n, 1)[..., None]
+    sq = np.einsum("famj,famj->fam", p, p)
+    mean_sq = np.einsum("fam,fam->am", w, sq) / np.maximum(n, 1)
+    pc = p - mean_p[None]
+    cov = np.einsum("fam,fami,famj->amij", w, pc, pc)  # (S, M, 3, 3)
+    g = np.einsum("fam,fami,fam->ami", w, pc, sq - mean_sq[None])
+    centre = 0.5 * np.einsum("abij,abj->abi", np.linalg.pinv(np.einsum("amij,mb->abij", cov, onehot)),
+                             np.einsum("ami,mb->abi", g, onehot))  # (S_a, S_b, 3)
+    dist = np.linalg.norm(p - centre[:, seg][None], axis=-1)  # (F, S, M): marker m about c[a, seg[m]]
+    mean_d = np.einsum("fam,fam->am", w, dist) / np.maximum(n, 1)
+    var = np.einsum("fam,fam->am", w, (dist - mean_d[None]) ** 2) / np.maximum(n, 1)
+    counts = np.maximum(onehot.sum(axis=0), 1)
+    misfit = (var @ onehot) / counts[None]
+    enough = ((n < min_frames).astype(float) @ onehot) == 0
+    posed_any = posed.any(axis=0)
+    ok = enough & posed_any[:, None] & ~np.eye(s, dtype=bool) & (onehot.sum(axis=0) > 0)[None]
+    return np.where(ok, misfit, np.inf)
+
+
+def fixed_centre_misfit(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray,
+    min_frames: int, poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """(S, S) fixed-centre misfit (m^2, module docstring) of every pair of posed segments.
+
+    ``x`` (F, M, 3) and ``mask`` (F, M) are the whole recording, posed as the anchored
+    refit poses it (the same compiled alignment); the misfit uses the ``frames`` given
+    (the all-pairs pass's subsample). ``inf`` where either segment has no pose (fewer
+    than three non-collinear markers) or fewer than ``min_frames`` of those frames pose
+    both, and on the diagonal.
+    """
+    rot, t, posed = poses if poses is not None else segment_poses(x, mask, marker_segment, n_segments, frames)
+    w = posed.astype(float)  # (F, S)
+    n = np.einsum("fa,fb->ab", w, w)
+    # World from segment frame: p = R^T (c - t). For a pair, A [c_a; c_b] = q_a - q_b with
+    # A = [R_a^T, -R_b^T] and q = R^T t; the normal equations' blocks per pair:
+    cross = np.einsum("fa,fb,faij,fbkj->abik", w, w, rot, rot)  # sum_f R_a R_b^T
+    rt_b = np.einsum("faij,fbkj,fbk->fabi", rot, rot, t)  # R_a R_b^T t_b
+    # A^T (q_a - q_b) = [t_a - R_a R_b^T t_b; t_b - R_b R_a^T t_a]
+    rhs_a = np.einsum("fa,fb,fabi->abi", w, w, t[:, :, None, :] - rt_b)
+    rhs_b = np.einsum("fa,fb,fabi->abi", w, w, t[:, None, :, :] - rt_b.transpose(0, 2, 1, 3))
+    s = n_segments
+    eye = np.eye(3) * n[..., None, None]
+    normal = np.zeros((s, s, 6, 6))
+    normal[..., :3, :3] = eye
+    normal[..., 3:, 3:] = eye
+    normal[..., :3, 3:] = -cross
+    normal[..., 3:, :3] = -cross.transpose(0, 1, 3, 2)
+    rhs = np.concatenate([rhs_a, rhs_b], axis=-1)
+    centres = np.einsum("abij,abj->abi", np.linalg.pinv(normal), rhs)
+    world = np.einsum("faji,abj->fabi", rot, centres[..., :3]) - np.einsum("faji,faj->fai", rot, t)[:, :, None]
+    other = np.einsum("fbji,abj->fabi", rot, centres[..., 3:]) - np.einsum("fbji,fbj->fbi", rot, t)[:, None]
+    both = w[:, :, None] * w[:, None, :]
+    misfit = np.einsum("fab,fabi->ab", both, (world - other) ** 2) / np.maximum(n, 1.0)
+    misfit = np.where((n >= min_frames) & ~np.eye(s, dtype=bool), misfit, np.inf)
+    return np.minimum(misfit, misfit.T)  # symmetric up to rounding
+
+
+def pose_checked_edges(
+    edges: np.ndarray, misfit: np.ndarray, cost: np.ndarray, *, factor: float = MISFIT_FACTOR,
+    judged: np.ndarray | None = None, test: str = "fixed",
+) -> tuple[np.ndarray, tuple[PoseExchange, ...]]:
+    """The MST ``edges`` (E, 2) with the joints the poses reject exchanged (module docstring).
+
+    A tree edge with a finite ``judged`` misfit (default ``misfit``) is replaced by the
+    lowest-``misfit`` pair across the cut it makes (finite ``cost``, not the edge itself)
+    where that pair's misfit is below the edge's divided by ``factor``; the worst edge
+    first, until none is. Returns the undirected edges (sorted) and the exchanges made,
+    labelled ``test``.
+    """
+    tree = [tuple(sorted(map(int, e))) for e in np.asarray(edges, dtype=int).reshape(-1, 2)]
+    n = misfit.shape[0]
+    judged_misfit = misfit if judged is None else judged
+    usable = np.where(np.isfinite(cost), misfit, np.inf)
+    exchanges: list[PoseExchange] = []
+    # Each exchange divides one edge's misfit by more than ``factor``, so the product of
+    # the judged edges' misfits falls geometrically and the loop ends; the cap only
+    # guards against misfits of exactly zero (noise-free input).
+    for _ in range(len(tree) * n + 1):
+        order = sorted((e for e in tree if np.isfinite(judged_misfit[e])), key=lambda e: -judged_misfit[e])
+        for e in order:
+            adj = _adjacency(n, np.array([f for f in tree if f != e], dtype=int).reshape(-1, 2))
+            # the two sides of the cut (within the component: a forest stays a forest)
+            side_a, side_b = np.zeros(n, bool), np.zeros(n, bool)
+            side_a[list(_bfs(adj, e[0])[0])] = True
+            side_b[list(_bfs(adj, e[1])[0])] = True
+            crossing = np.where(side_a[:, None] & side_b[None, :], usable, np.inf)
+            crossing[e[0], e[1]] = np.inf
+            a, b = np.unravel_index(np.argmin(crossing), crossing.shape)
+            if crossing[a, b] * factor < judged_misfit[e]:
+                new = tuple(sorted((int(a), int(b))))
+                tree[tree.index(e)] = new
+                exchanges.append(PoseExchange(e, new, (float(judged_misfit[e]), float(misfit[new])),
+                                              (float(cost[e]), float(cost[new])), test))
+                break
+        else:
+            break
+    return np.array(sorted(tree), dtype=int).reshape(-1, 2), tuple(exchanges)

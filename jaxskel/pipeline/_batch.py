@@ -1,0 +1,671 @@
+"""`fit_batch`: many trials, fitted together, resumably, one result file each.
+
+Pipeline (one process)::
+
+    load, clean, merge labels, segment  ──(thread pool, ``jobs`` threads)──┐
+                                                                          ▼
+    all-pairs joint costs of every ready trial  ── one chunked vmapped solve ──┐
+    tree joints of the same trials              ── one chunked vmapped solve ──┤  (main thread,
+                                                                          ▼    devices round-robin)
+    rigid skeleton, IK, write result + completion record ──(thread pool)──┘
+
+* **Batched core.** The candidate segment pairs of all trials whose padded shapes
+  agree (frame bucket, marker bucket) are concatenated and solved in the same
+  fixed 64-pair chunks (:func:`jaxskel.joints._topology.solve_chunked`); the tree joints
+  of those trials are pooled, sorted by their first-pass step count and solved in
+  shared chunks as well. A pair's solution does not depend on its chunk mates (the
+  vmapped while loop freezes finished pairs), so every trial gets exactly what
+  :func:`jaxskel.fit_skeleton` gives it alone (tested).
+* **Overlap.** Host-side stages of later trials (reading, cleaning, spectral
+  clustering) and the rigid fit, IK and writing of earlier ones run in thread pools
+  while the main thread runs the batched solves. Stages that run JAX code take
+  :data:`DEVICE_LOCK` (XLA:CPU hangs on concurrent executions, see below), so on CPU
+  only numpy and file work overlaps with the solves; the rigid fit and IK of the
+  previous batch run while the main thread waits for the next batch to be prepared.
+* **Devices.** Chunks go round-robin to ``devices`` (default: every local device
+  of JAX's default backend), dispatched asynchronously, so two GPUs (or CPU
+  "devices" forced with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``)
+  work at once.
+* **Failures.** A trial that raises becomes a row with ``status="failed"`` and the
+  error; the others go on. An error inside a shared solve is retried trial by
+  trial so that only the culprit fails.
+* **Resumable.** Each result file is written atomically and carries a completion
+  record (``/batch``: inputs' path/size/mtime, settings, summary row). A rerun
+  skips trials whose record matches; anything else (no file, a truncated or
+  foreign file, changed input or settings) is fitted again. Failed trials leave no
+  file, so a rerun retries them.
+* **Scale-out.** ``scheduler=`` sends groups of trials to a Dask cluster
+  (:mod:`jaxskel.pipeline._dask`); each worker runs this same pipeline.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import math
+import os
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from ._batch_io import (
+    BoneSpec,
+    _normalise_specs,
+    failed_row,
+    finished_row,
+    completion_record,
+    signature,
+    summary_row,
+    write_summary,
+)
+from .._errors import InputError, JaxskelError
+from ..clean._lowpass import check_cutoff
+from .._runtime.map_limit import near_map_limit, release_programs_near_map_limit
+from ..io._trial import Trial
+
+__all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
+
+#: Held around every stage that runs JAX code. Two XLA:CPU executions at once (two threads,
+#: or two forced host devices) hung for good (jaxlib 0.10, reproduced on the joint solver
+#: before it became LAPACK-free): batched LAPACK kernels (the rigid fit's SVD and Cholesky
+#: still are) split their batch over XLA's intra-op pool with ``ParallelBatchMap`` and
+#: block a pool thread until the pieces finish; with two threads and two such calls, both
+#: wait for work queued behind the other. So the pipeline overlaps only numpy/IO work with
+#: the device, and more cores are used through processes (Dask workers).
+DEVICE_LOCK = threading.RLock()
+
+#: Recording suffixes :func:`discover_trials` picks up.
+SUFFIXES = (".c3d", ".trc", ".csv", ".h5", ".hdf5")
+
+
+# ----------------------------------------------------------------------- items
+@dataclasses.dataclass(frozen=True)
+class _Item:
+    index: int
+    name: str
+    subject: str
+    inputs: tuple[Any, ...]  # paths and/or Trials, fitted together
+    output: Path | None
+
+    def inputs_text(self) -> str:
+        return "; ".join(str(v) if isinstance(v, (str, os.PathLike)) else (v.source or "<trial>") for v in self.inputs)
+
+
+def _is_result_file(path: Path) -> bool:
+    if path.suffix.lower() not in (".h5", ".hdf5"):
+        return False
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            return "schema_version" in f.attrs
+    except OSError:
+        return False
+
+
+def discover_trials(directory: str | os.PathLike[str], *, exclude: str | os.PathLike[str] | None = None) -> list[Path]:
+    """Recordings under ``directory`` (recursive; .c3d .trc .csv and trial .h5), sorted.
+
+    Result files (HDF5 with a ``schema_version``) and anything under ``exclude``
+    (the output folder) are left out.
+    """
+    root = Path(directory)
+    if not root.is_dir():
+        raise InputError(f"{root}: not a directory; fit-batch takes a folder of recordings")
+    skip = Path(exclude).resolve() if exclude is not None else None
+    found = []
+    for path in sorted(root.rglob("*")):
+        if not path.is_file() or path.suffix.lower() not in SUFFIXES or path.name.startswith("."):
+            continue
+        if skip is not None and skip in path.resolve().parents:
+            continue
+        if _is_result_file(path):
+            continue
+        found.append(path)
+    return found
+
+
+def _trial_name(value: Any, index: int) -> str:
+    if isinstance(value, (str, os.PathLike)):
+        return Path(value).stem
+    source = getattr(value, "source", "") or ""
+    stem = Path(source).stem if source and ("/" in source or "." in source) and ":" not in source else ""
+    return stem or f"trial{index:03d}"
+
+
+def _resolve_items(
+    trials: Any,
+    outdir: Path | None,
+    names: Sequence[str] | None,
+    subjects: Sequence[str] | None,
+) -> list[_Item]:
+    if isinstance(trials, (str, os.PathLike)) and Path(trials).is_dir():
+        root = Path(trials)
+        paths = discover_trials(root, exclude=outdir)
+        if not paths:
+            raise InputError(f"{root}: no recordings (.c3d, .trc, .csv, .h5) found")
+        rel = [p.relative_to(root) for p in paths]
+        auto_names = [r.with_suffix("").as_posix() for r in rel]
+        auto_subjects = [r.parts[0] if len(r.parts) > 1 else "" for r in rel]
+        entries: list[tuple[Any, ...]] = [(p,) for p in paths]
+    else:
+        if isinstance(trials, (str, os.PathLike, Trial)):
+            trials = [trials]
+        if not isinstance(trials, Sequence) or not trials:
+            raise InputError("fit_batch takes a folder, or a non-empty list of trials / paths / lists of them")
+        entries = []
+        for i, item in enumerate(trials):
+            group = tuple(item) if isinstance(item, Sequence) and not isinstance(item, (str, Trial)) else (item,)
+            if not group or not all(isinstance(v, (str, os.PathLike, Trial)) for v in group):
+                raise InputError(
+                    f"fit_batch item {i} must be a Trial, a path, or a list of those (one subject), got {item!r:.80}"
+                )
+            entries.append(group)
+        auto_names = [_trial_name(group[0], i) for i, group in enumerate(entries)]
+        auto_subjects = [""] * len(entries)
+    if names is not None:
+        names = [str(n) for n in names]
+        if len(names) != len(entries):
+            raise InputError(f"{len(names)} names for {len(entries)} trials")
+        if len(set(names)) != len(names):
+            raise InputError("trial names must be unique (they name the result files)")
+    else:
+        names, seen = [], collections.Counter()
+        for n in auto_names:
+            seen[n] += 1
+            names.append(n if seen[n] == 1 else f"{n}_{seen[n]}")
+    if subjects is not None and len(subjects) != len(entries):
+        raise InputError(f"{len(subjects)} subjects for {len(entries)} trials")
+    subj = [str(s) for s in subjects] if subjects is not None else auto_subjects
+    return [
+        _Item(i, n, s, e, None if outdir is None else outdir / f"{n}.h5")
+        for i, (n, s, e) in enumerate(zip(names, subj, entries))
+    ]
+
+
+# --------------------------------------------------------------------- outcomes
+@dataclasses.dataclass(frozen=True)
+class TrialOutcome:
+    """What happened to one trial of a batch.
+
+    ``status`` is ``"ok"`` (fitted now), ``"skipped"`` (a complete result with the
+    same inputs and settings was already there) or ``"failed"`` (``error`` says
+    why; ``traceback`` is set for unexpected, non-jaxskel errors). ``result`` is
+    the :class:`jaxskel.SkeletonResult` when kept in memory; ``output`` the
+    result file; ``row`` the summary-table row.
+    """
+
+    name: str
+    subject: str
+    status: str
+    error: str = ""
+    output: Path | None = None
+    result: Any = None
+    row: dict[str, Any] = dataclasses.field(default_factory=dict)
+    traceback: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status in ("ok", "skipped")
+
+    def load(self) -> Any:
+        """The result file read back (:func:`jaxskel.load_result`)."""
+        from ..result._format import load_result
+
+        if self.output is None:
+            raise InputError(f"{self.name}: no result file (fit_batch ran without an output folder)")
+        return load_result(self.output)
+
+
+class BatchResult(Sequence[TrialOutcome]):
+    """Outcomes of :func:`fit_batch`, in input order (a sequence of :class:`TrialOutcome`)."""
+
+    def __init__(self, outcomes: Sequence[TrialOutcome], summary: Path | None, seconds: float):
+        self.outcomes = list(outcomes)
+        self.summary = summary
+        self.seconds = seconds
+
+    def __len__(self) -> int:
+        return len(self.outcomes)
+
+    def __getitem__(self, i: Any) -> Any:
+        return self.outcomes[i]
+
+    def __iter__(self) -> Iterator[TrialOutcome]:
+        return iter(self.outcomes)
+
+    @property
+    def results(self) -> list[Any]:
+        """The in-memory results (``None`` for failed, skipped or not kept)."""
+        return [o.result for o in self.outcomes]
+
+    @property
+    def failed(self) -> list[TrialOutcome]:
+        return [o for o in self.outcomes if o.status == "failed"]
+
+    def counts(self) -> dict[str, int]:
+        return dict(collections.Counter(o.status for o in self.outcomes))
+
+    def table(self) -> list[dict[str, Any]]:
+        """The summary rows (as in the CSV)."""
+        return [dict(o.row) for o in self.outcomes]
+
+    def __repr__(self) -> str:
+        c = self.counts()
+        return (
+            f"BatchResult({len(self)} trials: {c.get('ok', 0)} ok, {c.get('skipped', 0)} skipped, "
+            f"{c.get('failed', 0)} failed, {self.seconds:.1f} s)"
+        )
+
+
+def _error_text(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _failed(item: _Item, exc: BaseException, seconds: float) -> TrialOutcome:
+    trace = "" if isinstance(exc, JaxskelError) else "".join(traceback.format_exception(exc))
+    row = failed_row(name=item.name, subject=item.subject, inputs=item.inputs_text(),
+                     output="", error=_error_text(exc), seconds=seconds)
+    return TrialOutcome(item.name, item.subject, "failed", error=row["error"], row=row, traceback=trace)
+
+
+# ----------------------------------------------------------------- the pipeline
+@dataclasses.dataclass
+class _Work:
+    item: _Item
+    t0: float
+    prep: Any = None
+    pairs: Any = None  # AllPairsProblem
+    tree: Any = None  # TreeProblem
+    topology: Any = None
+
+
+def _prepare(item: _Item, options: Mapping[str, Any]) -> _Work:
+    from ._fit import prepare_fit
+    from ..io._load import load
+    from ..joints._topology import all_pairs_problem
+
+    work = _Work(item, time.perf_counter())
+    t0 = time.perf_counter()
+    trials = [load(v) if isinstance(v, (str, os.PathLike)) else v for v in item.inputs]
+    load_s = time.perf_counter() - t0
+    work.prep = prepare_fit(
+        trials, options["n_segments"], clean_data=options["clean_data"], merge_labels=options["merge_labels"],
+        seed=options["seed"], settings=dict(options), device_lock=DEVICE_LOCK,
+    )
+    work.prep.timings["load"] = load_s
+    with work.prep.stage("joint costs"):
+        work.pairs = all_pairs_problem(
+            work.prep.trial, work.prep.segmentation, alpha=options["alpha"],
+            max_frames=options["topology_frames"], method=options["method"],
+        )
+    return work
+
+
+def _shared(works: list[_Work], solve: Callable[[list[Any]], list[Any]], attr: str, fail: Callable) -> list[Any]:
+    """Run one shared solve; if it raises, retry trial by trial so only the culprit fails."""
+    problems = [getattr(w, attr) for w in works]
+    try:
+        return solve(problems)
+    except Exception:  # noqa: BLE001 - isolate the failing trial
+        out = []
+        for w, p in zip(works, problems):
+            try:
+                out.append(solve([p])[0])
+            except Exception as exc:  # noqa: BLE001
+                fail(w, exc)
+                out.append(None)
+        return out
+
+
+def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, fail: Callable) -> list[_Work]:
+    """All-pairs costs, then tree joints, of several prepared trials together."""
+    from ..joints._topology import pair_costs_from, solve_pairs, solve_trees, topology_from, tree_problem
+
+    t0 = time.perf_counter()
+    with DEVICE_LOCK:
+        sols = _shared(works, lambda ps: solve_pairs(ps, devices=devices), "pairs", fail)
+    share = (time.perf_counter() - t0) / max(len(works), 1)
+    alive = []
+    for w, sol in zip(works, sols):
+        if sol is None:
+            continue
+        try:
+            with w.prep.stage("joint costs"):
+                pair_costs = pair_costs_from(w.pairs, sol)
+            # the pose check inside runs JAX code (segment poses): under the lock, like every
+            # other JAX stage, or it overlaps a finishing trial's programs and both hang
+            with w.prep.stage("tree joints"), DEVICE_LOCK:
+                w.tree = tree_problem(
+                    w.prep.trial, w.prep.segmentation, pair_costs, root=options["root"], alpha=options["alpha"],
+                    alpha_tree=options["alpha_tree"], method=options["method"],
+                    pose_check=w.prep.settings.get("pose_check", True),
+                )
+            w.prep.timings["joint costs"] += share
+            w.pairs = None  # free the padded arrays
+            alive.append(w)
+        except Exception as exc:  # noqa: BLE001
+            fail(w, exc)
+    t0 = time.perf_counter()
+    with DEVICE_LOCK:
+        sols = _shared(alive, lambda ps: solve_trees(ps, devices=devices), "tree", fail)
+    share = (time.perf_counter() - t0) / max(len(alive), 1)
+    done = []
+    for w, sol in zip(alive, sols):
+        if sol is None:
+            continue
+        try:
+            w.topology = topology_from(w.tree, sol)
+            w.prep.timings["tree joints"] += share
+            w.tree = None
+            done.append(w)
+        except Exception as exc:  # noqa: BLE001
+            fail(w, exc)
+    return done
+
+
+def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
+            keep: bool) -> TrialOutcome:
+    from ._fit import _confirm_merges_and_refit, add_motion, finish_fit, fit_joints_and_skeleton
+    from ._split_refit import fit_growing_count
+
+    item, prep = work.item, work.prep
+    # as fit_skeleton: a segment the rigid skeleton cannot hold grows the automatic count, and
+    # the skeleton checks the label merges; such refits run unbatched (joint and skeleton
+    # stages of this one trial)
+    refit = functools.partial(
+        fit_joints_and_skeleton, alpha=options["alpha"], alpha_tree=options["alpha_tree"],
+        method=options["method"], root=options["root"], topology_frames=options["topology_frames"],
+    )
+    with DEVICE_LOCK:
+        result = fit_growing_count(
+            prep, lambda p: finish_fit(p, work.topology), refit, add_motion, seed=options["seed"], segment_kwargs=None,
+        )
+        if options["confirm_merges"] and prep.label_mapping is not None and result.motion is not None:
+            result = _confirm_merges_and_refit(
+                prep, result, refit, min_run_s=0.5 if options["clean_data"] else None,
+                n_segments=options["n_segments"], seed=options["seed"], segment_kwargs=None,
+            )
+    seconds = sum(result.timings.values())  # this trial's share of the work, not its latency
+    row = summary_row(
+        result, name=item.name, subject=item.subject, inputs=item.inputs_text(),
+        output="" if item.output is None else str(item.output), seconds=seconds, bones=bones,
+    )
+    if item.output is not None:
+        item.output.parent.mkdir(parents=True, exist_ok=True)
+        result.save(item.output, overwrite=True, extra_groups={"batch": completion_record(sig or "", row)})
+    return TrialOutcome(item.name, item.subject, "ok", output=item.output, result=result if keep else None, row=row)
+
+
+def run_local(
+    items: Sequence[_Item],
+    options: Mapping[str, Any],
+    *,
+    bones: Mapping[str, BoneSpec],
+    signatures: Mapping[int, str],
+    batch_size: int,
+    jobs: int,
+    devices: Any,
+    keep_results: bool,
+    on_outcome: Callable[[_Item, TrialOutcome], None],
+) -> None:
+    """The in-process pipeline (module docstring); reports every trial to ``on_outcome``."""
+    prep_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-prepare")
+    finish_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-finish")
+    waiting = collections.deque(items)
+    preparing: collections.deque[tuple[_Item, Future]] = collections.deque()
+    finishing: list[Future] = []
+
+    def fail(work: _Work, exc: BaseException) -> None:
+        on_outcome(work.item, _failed(work.item, exc, time.perf_counter() - work.t0))
+
+    def top_up() -> None:
+        while waiting and len(preparing) < batch_size + jobs:
+            item = waiting.popleft()
+            preparing.append((item, prep_pool.submit(_prepare, item, options)))
+
+    def finish(work: _Work) -> None:
+        try:
+            outcome = _finish(work, options, bones, signatures.get(work.item.index), keep_results)
+        except Exception as exc:  # noqa: BLE001
+            outcome = _failed(work.item, exc, time.perf_counter() - work.t0)
+        on_outcome(work.item, outcome)
+
+    try:
+        top_up()
+        while preparing:
+            # A full batch (or what is left): while the main thread waits, the lock is free
+            # for the finishing stage of the previous batch and the preparation of this one.
+            ready = []
+            while preparing and len(ready) < batch_size:
+                ready.append(preparing.popleft())
+                ready[-1][1].exception()  # wait for it
+                top_up()
+            works = []
+            for item, fut in ready:
+                exc = fut.exception()
+                if exc is not None:
+                    on_outcome(item, _failed(item, exc, 0.0))
+                else:
+                    works.append(fut.result())
+            if works:
+                if near_map_limit():
+                    # XLA crashes past the kernel's mapping limit; JAX's programs may be
+                    # dropped only while no other thread runs them (jaxskel._runtime.map_limit)
+                    for fut in finishing:
+                        fut.exception()
+                    for _, fut in preparing:
+                        fut.exception()
+                    release_programs_near_map_limit(stacklevel=1)
+                for work in _solve_batch(works, options, devices, fail):
+                    finishing.append(finish_pool.submit(finish, work))
+            # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished
+            while sum(not f.done() for f in finishing) > 2 * jobs:
+                next(f for f in finishing if not f.done()).exception()
+            top_up()
+        for f in finishing:
+            f.result()
+    finally:
+        prep_pool.shutdown(wait=True, cancel_futures=True)
+        finish_pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _default_devices(devices: Any) -> Any:
+    if devices is None or devices == "auto":
+        import jax
+
+        local = jax.local_devices()
+        return local if len(local) > 1 else None
+    if devices == "default":
+        return None
+    return list(devices)
+
+
+def fit_batch(
+    trials: Any,
+    outdir: str | os.PathLike[str] | None = None,
+    *,
+    n_segments: int | None = None,
+    root: int | str | None = None,
+    clean_data: bool = True,
+    merge_labels: bool | str = "auto",
+    alpha: float = 1e-5,
+    alpha_tree: float | str = "auto",
+    method: str = "lm",
+    topology_frames: int = 300,
+    rigid: bool = True,
+    ik: bool = True,
+    seed: int = 0,
+    confirm_merges: bool = True,
+    ik_lowpass: float | str | None = "auto",
+    pose_check: bool = True,
+    names: Sequence[str] | None = None,
+    subjects: Sequence[str] | None = None,
+    bones: Mapping[str, Any] | None = None,
+    batch_size: int = 8,
+    jobs: int = 2,
+    devices: Any = "auto",
+    scheduler: Any = None,
+    overwrite: bool = False,
+    keep_results: bool | None = None,
+    summary: str | None = "summary.csv",
+    progress: bool = False,
+) -> BatchResult:
+    """Fit a skeleton to each of many trials: batched, overlapped, resumable.
+
+    Each item is fitted as :func:`jaxskel.fit_skeleton` would fit it alone (same
+    results), but the all-pairs joint costs and the tree joints of trials that are
+    ready together go through shared vmapped solves, and reading, cleaning,
+    segmentation, the rigid fit, IK and writing overlap with them (module
+    docstring of :mod:`jaxskel.pipeline._batch`).
+
+    Parameters
+    ----------
+    trials
+        A folder (every recording under it, recursively; see :func:`discover_trials`),
+        or a list whose items are a :class:`jaxskel.Trial`, a path, or a list of
+        those (several trials of one subject, fitted together).
+    outdir
+        Folder for one result file per trial (``<name>.h5``, sub-folders kept) and
+        the summary table. Without it, nothing is written and results are returned.
+    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges, ik_lowpass, pose_check
+        As in :func:`jaxskel.fit_skeleton`, the same for every trial.
+    names, subjects
+        Per-item names (result file names) and subject labels (summary column,
+        plot groups). Defaults: the path relative to the folder without suffix, and
+        its first folder (``DIR/subject/trial.c3d``); file stems for lists.
+    bones
+        Bone lengths to tabulate, ``{name: (A, S, B)}`` by marker labels or a list
+        of such triples to average (see :func:`jaxskel.plot_bone_lengths`); each
+        becomes a ``bone:<name>`` column.
+    batch_size
+        Most trials solved together.
+    jobs
+        Threads for the host-side stages (each of the two pools).
+    devices
+        JAX devices to spread chunks over: ``"auto"`` (all local devices of the
+        default backend), ``"default"`` (the default device only) or a list.
+    scheduler
+        A Dask scheduler address (``"tcp://host:8786"``) or a ``distributed.Client``:
+        groups of trials are fitted on the cluster's workers (needs ``outdir`` on
+        a file system the workers share; ``pip install "jaxskel[distributed]"``).
+    overwrite
+        Fit every trial again even if a complete result is there.
+    keep_results
+        Keep every :class:`~jaxskel.SkeletonResult` in memory (default: only when
+        there is no ``outdir``).
+    summary
+        File name of the summary CSV in ``outdir`` (``None``: none).
+    progress
+        Show a progress bar over trials.
+
+    Returns
+    -------
+    :class:`BatchResult`: one :class:`TrialOutcome` per item, in input order. A
+    failed trial does not raise; it is reported (``status == "failed"``).
+    """
+    t_start = time.perf_counter()
+    out = None if outdir is None else Path(outdir)
+    if scheduler is not None and out is None:
+        raise InputError("fit_batch with a scheduler needs outdir: the workers write the result files there")
+    if method not in ("lm", "ncg"):
+        raise InputError(f"method must be 'lm' or 'ncg', got {method!r}")
+    check_cutoff(ik_lowpass, allow_none=True)
+    if int(batch_size) < 1 or int(jobs) < 1:
+        raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
+    if out is not None:
+        if out.exists() and not out.is_dir():
+            raise InputError(f"{out} exists and is not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+    items = _resolve_items(trials, out, names, subjects)
+    specs = _normalise_specs(bones)
+    options = dict(
+        n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels, alpha=alpha,
+        alpha_tree=alpha_tree, method=method, topology_frames=topology_frames, rigid=rigid, ik=ik, seed=seed,
+        confirm_merges=confirm_merges, ik_lowpass=ik_lowpass, pose_check=bool(pose_check),
+    )
+    keep = (out is None) if keep_results is None else bool(keep_results)
+
+    outcomes: dict[int, TrialOutcome] = {}
+    lock = threading.Lock()
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(items), desc="fit_batch", unit="trial")
+    summary_path = None if (out is None or not summary) else out / summary
+
+    def rows_so_far() -> list[dict[str, Any]]:
+        return [outcomes[i].row for i in sorted(outcomes)]
+
+    def on_outcome(item: _Item, outcome: TrialOutcome) -> None:
+        with lock:
+            outcomes[item.index] = outcome
+            if bar is not None:
+                c = collections.Counter(o.status for o in outcomes.values())
+                bar.set_postfix(ok=c.get("ok", 0), skipped=c.get("skipped", 0), failed=c.get("failed", 0))
+                bar.update(1)
+            if summary_path is not None:
+                write_summary(summary_path, rows_so_far())
+
+    # Resume: trials with a complete result of the same inputs and settings are skipped.
+    signatures: dict[int, str] = {}
+    todo = []
+    for item in items:
+        if item.output is None:
+            todo.append(item)
+            continue
+        try:
+            signatures[item.index] = signature(item.inputs, options)
+        except OSError as exc:
+            on_outcome(item, _failed(item, InputError(f"{item.inputs_text()}: cannot read ({exc})"), 0.0))
+            continue
+        row = None if overwrite else finished_row(item.output, signatures[item.index])
+        if row is not None:
+            row = dict(row, status="skipped", error="")
+            if specs:
+                _refresh_bones(row, item.output, specs)
+            on_outcome(item, TrialOutcome(item.name, item.subject, "skipped", output=item.output, row=row))
+        else:
+            todo.append(item)
+
+    try:
+        if todo and scheduler is not None:
+            from ._dask import run_distributed
+
+            run_distributed(
+                todo, options, scheduler=scheduler, bones=specs, signatures=signatures,
+                batch_size=int(batch_size), on_outcome=on_outcome,
+            )
+        elif todo:
+            run_local(
+                todo, options, bones=specs, signatures=signatures, batch_size=int(batch_size), jobs=int(jobs),
+                devices=_default_devices(devices), keep_results=keep, on_outcome=on_outcome,
+            )
+    finally:
+        if bar is not None:
+            bar.close()
+        if summary_path is not None and outcomes:
+            with lock:
+                write_summary(summary_path, rows_so_far())
+    return BatchResult([outcomes[i.index] for i in items], summary_path, time.perf_counter() - t_start)
+
+
+def _refresh_bones(row: dict[str, Any], path: Path, specs: Mapping[str, BoneSpec]) -> None:
+    """Bone columns of a skipped trial, from its result file (the specs may be new)."""
+    from ._batch_io import bone_length
+    from ..result._format import load_result
+
+    try:
+        result = load_result(path)
+    except JaxskelError:
+        return
+    for bone, spec in specs.items():
+        value = bone_length(result, spec)
+        row[f"bone:{bone}"] = round(value, 6) if math.isfinite(value) else math.nan

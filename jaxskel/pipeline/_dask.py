@@ -1,0 +1,149 @@
+"""Scale-out of :func:`jaxskel.fit_batch` on a Dask distributed cluster.
+
+Why Dask (and not Ray): the work is a bag of independent, coarse tasks (a group of
+trials takes seconds to minutes) that read and write files; Dask distributed
+schedules exactly that with a plain ``Client.submit``, starts a local cluster of
+worker *processes* in one line (``LocalCluster(n_workers=2)``), is a pure-Python
+``pip install`` (no separate object store or runtime daemon), runs on HPC
+schedulers through dask-jobqueue, and is already in the scientific-Python stack
+most labs use. Ray would add an actor model and a shared-memory object store that
+this workload does not need.
+
+Design: the client groups the trials to fit (those not already finished) into
+tasks of up to ``batch_size`` trials (one group per worker when there are few),
+ordered by input size so that trials of similar
+length share a task (and therefore padded shapes and compiled solvers); each
+worker runs the in-process pipeline (:func:`jaxskel.pipeline._batch.run_local`) on its
+group with the persistent compilation cache switched on, writes the result files
+into the shared output folder, and returns the summary rows. A task that dies
+(worker lost, out of memory) marks its trials failed; the others go on, and a
+rerun retries them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from .._errors import InputError
+from ..io._trial import Trial
+
+__all__ = ["run_distributed"]
+
+
+def _pack(value: Any) -> Any:
+    """Trials travel as plain state (their read-only metadata mapping does not pickle)."""
+    if isinstance(value, Trial):
+        return ("trial", dict(positions=value.positions, labels=value.labels, rate=value.rate,
+                              up_axis=value.up_axis, source=value.source, metadata=dict(value.metadata)))
+    return ("path", str(value))
+
+
+def _unpack(value: Any) -> Any:
+    kind, state = value
+    return Trial(**state) if kind == "trial" else Path(state)
+
+
+def _size(item: Any) -> int:
+    total = 0
+    for v in item.inputs:
+        if isinstance(v, (str, os.PathLike)):
+            try:
+                total += Path(v).stat().st_size
+            except OSError:
+                pass
+        else:
+            total += int(v.positions.nbytes)
+    return total
+
+
+def _fit_group(
+    packed: list[tuple[int, str, str, list[Any], str | None]],
+    options: Mapping[str, Any],
+    bones: Mapping[str, Any],
+    signatures: Mapping[int, str],
+    batch_size: int,
+) -> list[tuple[int, dict[str, Any], str]]:
+    """Worker task: fit a group of trials in-process; return (index, row, output) per trial."""
+    from ._batch import _default_devices, _Item, run_local
+    from .._runtime.compile_cache import enable_compile_cache
+
+    enable_compile_cache()
+    items = [
+        _Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out))
+        for index, name, subject, inputs, out in packed
+    ]
+    rows: list[tuple[int, dict[str, Any], str]] = []
+
+    def on_outcome(item: Any, outcome: Any) -> None:
+        rows.append((item.index, dict(outcome.row), outcome.traceback))
+
+    run_local(
+        items, options, bones=bones, signatures=signatures, batch_size=batch_size, jobs=2,
+        devices=_default_devices("auto"), keep_results=False, on_outcome=on_outcome,
+    )
+    return rows
+
+
+def run_distributed(
+    items: Sequence[Any],
+    options: Mapping[str, Any],
+    *,
+    scheduler: Any,
+    bones: Mapping[str, Any],
+    signatures: Mapping[int, str],
+    batch_size: int,
+    on_outcome: Callable[[Any, Any], None],
+    group_size: int | None = None,
+) -> None:
+    """Fit ``items`` on a Dask cluster (module docstring); report each trial to ``on_outcome``."""
+    try:
+        from distributed import Client, as_completed
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise InputError(
+            'a scheduler needs Dask distributed: pip install "jaxskel[distributed]" (or "dask[distributed]")'
+        ) from None
+    from ._batch import TrialOutcome, _failed
+
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, timeout="30s") if own else scheduler
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
+    try:
+        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+        # one group per worker, at most batch_size trials each: batching within a worker saves
+        # more than finer load balancing would (measured, bench/bench_batch.py)
+        size = group_size or max(1, min(batch_size, math.ceil(len(items) / n_workers)))
+        ordered = sorted(items, key=_size)
+        groups = [ordered[i : i + size] for i in range(0, len(ordered), size)]
+        futures = {}
+        for group in groups:
+            packed = [
+                (it.index, it.name, it.subject, [_pack(v) for v in it.inputs], None if it.output is None else str(it.output))
+                for it in group
+            ]
+            sigs = {it.index: signatures.get(it.index, "") for it in group}
+            fut = client.submit(_fit_group, packed, dict(options), dict(bones), sigs, batch_size, pure=False)
+            futures[fut] = group
+        by_index = {it.index: it for it in items}
+        for fut in as_completed(list(futures)):
+            group = futures[fut]
+            try:
+                rows = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a lost worker fails its trials only
+                for it in group:
+                    on_outcome(it, _failed(it, RuntimeError(f"Dask task failed: {type(exc).__name__}: {exc}"), 0.0))
+                continue
+            for index, row, trace in rows:
+                it = by_index[index]
+                status = row.get("status", "failed")
+                out = it.output if status == "ok" else None
+                on_outcome(it, TrialOutcome(it.name, it.subject, status, error=row.get("error", ""),
+                                            output=out, row=row, traceback=trace))
+    finally:
+        if own:
+            client.close()

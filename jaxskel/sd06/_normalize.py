@@ -1,0 +1,687 @@
+"""Skeleton normalisation: body planes and skeleton-aligned limb frames (Sar Dessai et al. 2006, §3).
+
+Frames are rotation matrices whose COLUMNS are the axes in world coordinates:
+``L = [x | y | z]`` with, for the body frame, x = frontal-plane normal
+(anterior), y = sagittal-plane normal (the subject's left), z = transverse-plane
+normal (superior). A limb frame ``(L_s, o_s)`` maps limb coordinates to the
+world, ``x_world = L_s @ x_limb + o_s``.
+
+Default pose (§3). Per frame, from the joint positions ``X`` (J, 3) with centroid
+``c``, covariance eigenvalues ``l_1 >= l_2 >= l_3`` and eigenvectors ``e_k``:
+
+* ``plane``  = ``l_3``: mean squared distance to the best-fit plane;
+* ``ratio``  = short / long edge of the bounding box of the joints projected on
+  ``(e_1, e_2)`` (the best-fit plane): small for an elongated, upright pose;
+* ``spread`` = mean ``|X_j - c|``: small for a compact pose (arms down).
+
+They are made unit-free with the recording's scale ``L`` = median over frames of
+``spread``, and the cost is ``w_plane plane / L^2 + w_ratio ratio + w_spread
+spread / L`` (weights :data:`DEFAULT_POSE_WEIGHTS`, configurable). Standing with
+the arms hanging makes all three terms small; a T-pose has ratio ~1, a crouch is
+not planar, raised arms spread the joints.
+
+The cost only sees joints, so it cannot tell a frame of the held default pose
+from one where only a leaf limb (hand, foot, head: no distal joint) moves, yet
+the leaf's frame is taken from the chosen frame. Frames whose cost is within
+``candidate_tolerance`` (cost units, default 0.02) of the least cost are
+therefore all candidates, and the default-pose frame ``d`` is the candidate
+whose leaves are closest to their typical posture over the candidates (the
+geometric median of the direction from the parent limb's origin to the leaf's
+joint, seen in the leaf's frame); the cost breaks ties. With tolerance 0 this
+is the paper's least-cost frame.
+
+Body planes at frame ``d``: the frontal normal is ``e_3``; the transverse normal
+is the up axis made orthogonal to it; the sagittal normal completes the frame.
+The front/back sign is not visible in a planar pose, so it is a convention: the
+subject's left (+y) is the side of the first joint (in joint order) that lies
+clearly off the midline (more than a quarter of the widest lateral offset), or
+the frontal normal points along ``facing`` when that world direction is given.
+
+Limb frames at frame ``d``: the root (hierarchical root segment) gets the body
+frame. Every other segment's main orientation ``m`` runs from its proximal joint
+to the centroid of its distal joints; a leaf (no distal joint) points from its
+parent limb's origin to its proximal joint. The body normal most parallel to
+``m`` is replaced by ``+-m`` (sign kept, so the limb frame stays close to the body
+frame); of the two others, the one closer to the plane orthogonal to ``m`` is
+projected into that plane and the third axis completes a right-handed frame.
+Origins ("midpoints"): the centroid of the root's joints; the midpoint between
+proximal joint and distal centroid; a leaf's proximal joint.
+
+Propagation: with the segment orientations ``R_s(f)``, the limb frame in segment
+coordinates ``R_s(d)^T L_s(d)`` is constant, so ``L_s(f) = R_s(f) R_s(d)^T
+L_s(d)``; origins follow from the joints of each frame (the same rigid points).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from .._errors import DegenerateMotionError, InputError
+from .._math.geometry import (
+    matrix_to_quat,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+    quat_to_matrix,
+)
+from .._math.padding import bucket_size
+
+__all__ = [
+    "DEFAULT_POSE_WEIGHTS",
+    "Normalization",
+    "normalize",
+    "normalize_arrays",
+    "default_pose_terms",
+    "tree_arrays",
+    "freeze_fields",
+    "write_normalized",
+]
+
+#: Default weights of the default-pose cost terms (see the module docstring).
+#: ``plane`` is larger because ``l_3 / L^2`` is a squared, small quantity
+#: (~0.001 for a standing pose, ~0.05 for a random one).
+DEFAULT_POSE_WEIGHTS: Mapping[str, float] = {"plane": 10.0, "ratio": 1.0, "spread": 1.0}
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _unit(v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    n = jnp.linalg.norm(v, axis=-1, keepdims=True)
+    return v / jnp.where(n > 1e-12, n, 1.0)
+
+
+# ------------------------------------------------------------------ tree (host)
+@dataclasses.dataclass(frozen=True)
+class TreeArrays:
+    """Host-side index/weight arrays of a rooted segment tree.
+
+    Attributes
+    ----------
+    proximal
+        (S,) joint whose child is the segment (-1 for the root).
+    leaf
+        (S,) True for segments without distal joints.
+    origin_weights
+        (S, J): limb origin ``o_s = origin_weights[s] @ X`` from joint positions.
+    main_weights
+        (S, J): main orientation ``m_s = main_weights[s] @ X`` for non-leaf,
+        non-root segments (leaves and the root have zero rows).
+    order
+        (J,) joints in topological order (a parent's joint before its children's).
+    """
+
+    proximal: np.ndarray
+    leaf: np.ndarray
+    origin_weights: np.ndarray
+    main_weights: np.ndarray
+    order: np.ndarray
+
+
+def tree_arrays(edges: Any, root: int) -> TreeArrays:
+    """Validate a parent->child edge list and derive :class:`TreeArrays`."""
+    edges = np.asarray(edges)
+    if edges.ndim != 2 or edges.shape[1] != 2 or edges.shape[0] < 1 or not np.issubdtype(edges.dtype, np.integer):
+        raise InputError(f"edges must be a (J, 2) integer array of parent->child segments, got shape {edges.shape}")
+    n_joints = edges.shape[0]
+    n_seg = n_joints + 1
+    root = int(root)
+    children = edges[:, 1]
+    if edges.min() < 0 or edges.max() >= n_seg or len(set(children.tolist())) != n_joints or root in children:
+        raise InputError(
+            f"edges {edges.tolist()} with root {root} are not a rooted tree over {n_seg} segments: "
+            "every segment except the root must be the child of exactly one joint"
+        )
+    proximal = np.full(n_seg, -1)
+    proximal[children] = np.arange(n_joints)
+    order, placed, pending = [], {root}, list(range(n_joints))
+    while pending:
+        ready = [j for j in pending if edges[j, 0] in placed]
+        if not ready:
+            raise InputError(f"edges {edges.tolist()} do not form a tree reachable from root {root}")
+        for j in ready:
+            order.append(j)
+            placed.add(int(edges[j, 1]))
+            pending.remove(j)
+    distal = np.zeros((n_seg, n_joints))
+    distal[edges[:, 0], np.arange(n_joints)] = 1.0
+    n_distal = distal.sum(1)
+    leaf = n_distal == 0
+    distal_mean = distal / np.maximum(n_distal, 1)[:, None]
+    prox = np.zeros((n_seg, n_joints))
+    has_prox = proximal >= 0
+    prox[np.flatnonzero(has_prox), proximal[has_prox]] = 1.0
+    origin = np.where(leaf[:, None], prox, 0.5 * (prox + distal_mean))
+    origin[root] = distal_mean[root]
+    main = np.where(leaf[:, None], 0.0, distal_mean - prox)
+    main[root] = 0.0
+    return TreeArrays(proximal, leaf, origin, main, np.asarray(order, dtype=int))
+
+
+def up_vector(up_axis: Any) -> np.ndarray:
+    """Unit up vector from an axis name ("z", "-y", ...) or a 3-vector."""
+    if isinstance(up_axis, str):
+        name = up_axis.strip().lower()
+        sign = -1.0 if name.startswith("-") else 1.0
+        if name.lstrip("+-") not in _AXES:
+            raise InputError(
+                f"up_axis must be one of x, y, z, -x, -y, -z or a 3-vector, got {up_axis!r}; "
+                "the body planes need the recording's vertical (Trial.up_axis)"
+            )
+        return sign * np.eye(3)[_AXES[name.lstrip("+-")]]
+    v = np.asarray(up_axis, dtype=float).reshape(-1)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
+        raise InputError(f"up_axis must be an axis name or a non-zero 3-vector, got {up_axis!r}")
+    return v / np.linalg.norm(v)
+
+
+# ------------------------------------------------------------------ core (JAX)
+def default_pose_terms(x: Float[Array, "J 3"]) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
+    """``(plane, ratio, spread)`` of one frame's joints and the covariance eigenvectors (ascending)."""
+    centred = x - jnp.mean(x, axis=0)
+    cov = centred.T @ centred / x.shape[0]
+    vals, vecs = jnp.linalg.eigh(cov)
+    extent = jnp.ptp(centred @ vecs[:, 1:], axis=0)
+    ratio = jnp.min(extent) / jnp.maximum(jnp.max(extent), 1e-12)
+    spread = jnp.mean(jnp.linalg.norm(centred, axis=-1))
+    return jnp.stack([jnp.maximum(vals[0], 0.0), ratio, spread]), vecs
+
+
+def _masked_median(values: Float[Array, " F"], mask: Bool[Array, " F"]) -> Float[Array, ""]:
+    ordered = jnp.sort(jnp.where(mask, values, jnp.inf))
+    return ordered[(jnp.sum(mask) - 1) // 2]
+
+
+def _geometric_median(
+    points: Float[Array, "F 3"], mask: Bool[Array, " F"], steps: int = 16
+) -> Float[Array, " 3"]:
+    """Geometric median of the masked points (Weiszfeld's iteration from their mean).
+
+    Robust like a median (half the points may be far off) at the cost of a few
+    elementwise passes, instead of sorting every frame.
+    """
+    w0 = mask.astype(points.dtype)
+
+    def step(_, centre):
+        w = w0 / jnp.maximum(jnp.linalg.norm(points - centre, axis=-1), 1e-9)
+        return jnp.sum(w[:, None] * points, 0) / jnp.maximum(jnp.sum(w), 1e-300)
+
+    mean = jnp.sum(w0[:, None] * points, 0) / jnp.maximum(jnp.sum(w0), 1.0)
+    return jax.lax.fori_loop(0, steps, step, mean)
+
+
+def _limb_frame(m: Float[Array, " 3"], body: Float[Array, "3 3"]) -> tuple[Float[Array, "3 3"], Int[Array, ""], Float[Array, ""]]:
+    """Limb frame from its main orientation and the body normals (columns of ``body``).
+
+    Returns the frame, the index of the column that holds the main axis and the
+    sign with which it holds it (``m = sign * L[:, main]``).
+    """
+    m = _unit(m)
+    cos = body.T @ m
+    k = jnp.argmax(jnp.abs(cos))
+    sign = jnp.where(cos[k] < 0, -1.0, 1.0).astype(m.dtype)
+    axis_k = sign * m
+    i, j = (k + 1) % 3, (k + 2) % 3
+    # The body normal closer to the plane orthogonal to m is projected first.
+    i_first = jnp.abs(cos[i]) <= jnp.abs(cos[j])
+    first = jnp.where(i_first, i, j)
+    proj = _unit(body[:, first] - (body[:, first] @ m) * m)
+    # Cyclic (k, i, j): e_j = e_k x e_i and e_i = e_j x e_k.
+    other = jnp.where(i_first, jnp.cross(axis_k, proj), jnp.cross(proj, axis_k))
+    col_i = jnp.where(i_first, proj, other)
+    col_j = jnp.where(i_first, other, proj)
+    frame = jnp.zeros((3, 3), m.dtype).at[:, k].set(axis_k).at[:, i].set(col_i).at[:, j].set(col_j)
+    return frame, k, sign
+
+
+@jax.jit
+def _normalize_core(
+    joints: Float[Array, "F J 3"],
+    quats: Float[Array, "F S 4"],
+    translations: Float[Array, "F S 3"],
+    valid: Bool[Array, " F"],
+    edges: Int[Array, "J 2"],
+    origin_weights: Float[Array, "S J"],
+    main_weights: Float[Array, "S J"],
+    proximal: Int[Array, " S"],
+    parent: Int[Array, " S"],
+    leaf: Bool[Array, " S"],
+    leaves: Int[Array, " L"],
+    root: Int[Array, ""],
+    up: Float[Array, " 3"],
+    facing: Float[Array, " 3"],
+    weights: Float[Array, " 3"],
+    candidate_tolerance: Float[Array, ""],
+) -> dict[str, Array]:
+    """Default-pose frame, body frame, limb frames and constant offsets (module docstring)."""
+    terms, vecs = jax.vmap(default_pose_terms)(joints)
+    scale = _masked_median(terms[:, 2], valid)
+    scaled = terms / jnp.stack([scale**2, jnp.ones_like(scale), scale])
+    cost = jnp.where(valid, scaled @ weights, jnp.inf)
+    origins = jnp.einsum("sj,fjk->fsk", origin_weights, joints)
+    quats = quat_normalize(quats)
+
+    # Default-pose candidates: frames within the tolerance of the least cost. Among
+    # them, the leaves (invisible to the joint-based cost) decide: the frame whose
+    # leaves sit closest to their typical posture over the candidates, with the cost
+    # as a tie-breaker (it only matters when there are no leaves).
+    least = jnp.min(cost)
+    candidate = valid & (cost <= least + candidate_tolerance)
+    proximal_x = joints[:, jnp.maximum(proximal, 0)]
+    toward = _unit(proximal_x - origins[:, jnp.maximum(parent, 0)])
+    seen = quat_rotate(quat_conjugate(quats[:, leaves]), toward[:, leaves])  # in each leaf's frame
+    typical = _unit(jax.vmap(_geometric_median, (1, None))(seen, candidate))
+    leaf_off = jnp.sum((seen - typical) ** 2, axis=(1, 2))
+    score = leaf_off + 1e-3 * (cost - least) / jnp.maximum(candidate_tolerance, 1e-12)
+    d = jnp.argmin(jnp.where(candidate, score, jnp.inf))
+
+    # Body planes at the default frame.
+    x_d = joints[d]
+    centroid = jnp.mean(x_d, axis=0)
+    frontal = vecs[d][:, 0]
+    up_in_plane = up - (up @ frontal) * frontal
+    transverse = _unit(up_in_plane)
+    lateral0 = jnp.cross(transverse, frontal)
+    offsets = (x_d - centroid) @ lateral0
+    first_lateral = jnp.argmax(jnp.abs(offsets) > 0.25 * jnp.max(jnp.abs(offsets)))
+    by_side = jnp.where(offsets[first_lateral] < 0, -1.0, 1.0)
+    by_facing = jnp.where(frontal @ facing < 0, -1.0, 1.0)
+    sign = jnp.where(jnp.any(facing != 0), by_facing, by_side).astype(joints.dtype)
+    body = jnp.stack([sign * frontal, sign * lateral0, transverse], axis=1)
+
+    # Limb frames at the default frame.
+    proximal_d = x_d[jnp.maximum(proximal, 0)]
+    main_d = jnp.where(leaf[:, None], proximal_d - origins[d][jnp.maximum(parent, 0)], main_weights @ x_d)
+    frames_d, main_axis, main_sign = jax.vmap(_limb_frame, in_axes=(0, None))(main_d, body)
+    is_root = jnp.arange(frames_d.shape[0]) == root
+    frames_d = jnp.where(is_root[:, None, None], body, frames_d)
+
+    local = jnp.einsum("sji,sjk->sik", quat_to_matrix(quats[d]), frames_d)
+    limb = quat_multiply(quats, matrix_to_quat(local)[None])
+    frames = quat_to_matrix(limb)
+
+    # Constant offsets, averaged over the valid frames: joint j in the parent and in
+    # the child limb frame, and each limb origin in its segment frame.
+    w = valid.astype(joints.dtype)[:, None, None] / jnp.sum(valid)
+    p, c = edges[:, 0], edges[:, 1]
+
+    def in_limb(s, x):
+        return jnp.sum(w * quat_rotate(quat_conjugate(limb[:, s]), x - origins[:, s]), axis=0)
+
+    joint_offsets = jnp.stack([in_limb(p, joints), in_limb(c, joints)], axis=1)
+    origins_local = jnp.sum(w * quat_rotate(quat_conjugate(quats), origins - translations), axis=0)
+    return {
+        "cost": cost,
+        "candidate": candidate,
+        "terms": terms,
+        "scale": scale,
+        "default_frame": d,
+        "body_frame": body,
+        "up_in_plane": jnp.linalg.norm(up_in_plane),
+        "main_length": jnp.linalg.norm(main_d, axis=-1),
+        "main_axis": main_axis,
+        "main_sign": main_sign,
+        "local": local,
+        "frames": frames,
+        "limb": limb,
+        "origins": origins,
+        "joint_offsets": joint_offsets,
+        "origins_local": origins_local,
+    }
+
+
+# ------------------------------------------------------------------ results
+def freeze_fields(obj: Any) -> None:
+    """Make a frozen dataclass deeply read-only: arrays unwritable, mappings read-only views."""
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if isinstance(value, np.ndarray):
+            value = value.view()  # a view: the flag is ours to set, no copy of the data
+            value.setflags(write=False)
+            object.__setattr__(obj, field.name, value)
+        elif isinstance(value, Mapping):
+            object.__setattr__(obj, field.name, types.MappingProxyType(dict(value)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalization:
+    """Skeleton-aligned limb frames for a whole recording (Sar Dessai et al. 2006, §3).
+
+    Frames are rotation matrices with the axes as columns (x anterior, y left,
+    z superior for the body frame); ``x_world = limb_frames[f, s] @ x_limb +
+    limb_origins[f, s]``. See :mod:`jaxskel.sd06._normalize` for the maths.
+
+    Attributes
+    ----------
+    edges, root
+        (J, 2) parent -> child segments and the root segment.
+    default_frame
+        Index of the frame chosen as the default pose.
+    cost, cost_terms
+        (F,) default-pose cost and (F, 3) its raw terms (plane [m^2], ratio, spread [m]).
+    candidates
+        (F,) frames within the candidate tolerance of the least cost.
+    candidate_tolerance
+        That tolerance (cost units).
+    weights
+        The cost weights used (``plane``, ``ratio``, ``spread``).
+    scale
+        Metres: the median spread that makes the terms unit-free.
+    up
+        (3,) the recording's up vector.
+    body_frame
+        (3, 3) body frame at the default frame (columns: frontal, sagittal and
+        transverse plane normals).
+    limb_frames, limb_origins
+        (F, S, 3, 3) and (F, S, 3): every segment's limb frame in every frame.
+    limb_rotations
+        (F, S, 4) the same limb frames as quaternions (w, x, y, z).
+    limb_frames_local
+        (S, 3, 3): each limb frame in its segment's coordinates (constant).
+    main_axis, main_sign
+        (S,) which limb-frame column is the limb's long axis and its sign: the
+        direction from the proximal joint along the limb is
+        ``main_sign[s] * limb_frames[f, s][:, main_axis[s]]`` (root: unused).
+    joint_offsets
+        (J, 2, 3): joint j relative to the parent limb's origin in the parent
+        limb frame, and relative to the child limb's origin in the child limb
+        frame (means over frames).
+    origins_local
+        (S, 3) each limb origin in its segment's coordinates, or None when the
+        segment translations were not given.
+    """
+
+    edges: np.ndarray
+    root: int
+    default_frame: int
+    cost: np.ndarray
+    candidates: np.ndarray
+    candidate_tolerance: float
+    cost_terms: np.ndarray
+    weights: Mapping[str, float]
+    scale: float
+    up: np.ndarray
+    body_frame: np.ndarray
+    limb_frames: np.ndarray
+    limb_rotations: np.ndarray
+    limb_origins: np.ndarray
+    limb_frames_local: np.ndarray
+    main_axis: np.ndarray
+    main_sign: np.ndarray
+    joint_offsets: np.ndarray
+    origins_local: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        freeze_fields(self)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.limb_frames.shape[0])
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.limb_frames.shape[1])
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.edges.shape[0])
+
+    @property
+    def body_frames(self) -> np.ndarray:
+        """(F, 3, 3) the body (root limb) frame in every frame."""
+        return self.limb_frames[:, self.root]
+
+    @property
+    def main_directions(self) -> np.ndarray:
+        """(F, S, 3) unit long axis of every limb, pointing away from its proximal joint."""
+        cols = np.take_along_axis(self.limb_frames, self.main_axis[None, :, None, None], axis=3)[..., 0]
+        return cols * self.main_sign[None, :, None]
+
+    def __repr__(self) -> str:
+        return (
+            f"Normalization({self.n_frames} frames, {self.n_segments} limbs, "
+            f"default frame {self.default_frame})"
+        )
+
+
+def _weights(weights: Mapping[str, float] | None) -> dict[str, float]:
+    out = dict(DEFAULT_POSE_WEIGHTS)
+    if weights is not None:
+        unknown = set(weights) - set(out)
+        if unknown:
+            raise InputError(f"unknown default-pose weight(s) {sorted(unknown)}; use {sorted(out)}")
+        out.update({k: float(v) for k, v in weights.items()})
+    if any(not np.isfinite(v) or v < 0 for v in out.values()) or sum(out.values()) == 0:
+        raise InputError(f"default-pose weights must be finite, >= 0 and not all zero, got {out}")
+    return out
+
+
+def normalize_arrays(
+    joint_positions: Float[Any, "F J 3"],
+    edges: Int[Any, "J 2"],
+    rotations: Float[Any, "F S 4"],
+    *,
+    root: int = 0,
+    up_axis: Any = "z",
+    weights: Mapping[str, float] | None = None,
+    facing: Any = None,
+    segment_translations: Float[Any, "F S 3"] | None = None,
+    candidate_tolerance: float = 0.02,
+) -> Normalization:
+    """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
+
+    Parameters
+    ----------
+    joint_positions
+        (F, J, 3) joint centres in metres; row j belongs to ``edges[j]``.
+    edges
+        (J, 2) parent -> child segment indices of a rooted tree.
+    rotations
+        (F, S, 4) global segment orientations, unit quaternions (w, x, y, z).
+    root
+        Root segment (receives the body frame).
+    up_axis
+        The recording's vertical: "x", "y", "z", "-x", "-y", "-z" or a 3-vector.
+    weights
+        Default-pose cost weights, keys ``plane``, ``ratio``, ``spread`` (missing keys
+        keep :data:`DEFAULT_POSE_WEIGHTS`).
+    facing
+        Optional world direction the subject faces in the default pose (axis name
+        or 3-vector); by default the front/back sign comes from the joint order.
+    segment_translations
+        Optional (F, S, 3) segment origins; with them the result also knows each
+        limb origin in segment coordinates (for marker reconstruction).
+    candidate_tolerance
+        Frames whose cost exceeds the least cost by at most this much are
+        default-pose candidates (see the module docstring); 0 keeps the least-cost frame.
+    """
+    x = np.asarray(joint_positions)
+    q = np.asarray(rotations)
+    tree = tree_arrays(edges, root)
+    n_joints = tree.order.size
+    if x.ndim != 3 or x.shape[1:] != (n_joints, 3):
+        raise InputError(f"joint_positions must be (F, {n_joints}, 3) for {n_joints} joints, got {x.shape}")
+    if q.shape != (x.shape[0], n_joints + 1, 4):
+        raise InputError(
+            f"rotations must be (F, S, 4) = ({x.shape[0]}, {n_joints + 1}, 4) quaternions, got {q.shape}"
+        )
+    if n_joints < 3:
+        raise InputError(f"the body planes need at least 3 joints; this skeleton has {n_joints}")
+    if x.shape[0] < 1:
+        raise InputError("the motion has no frames")
+    for name, arr in (("joint_positions", x), ("rotations", q)):
+        bad = ~np.all(np.isfinite(arr.reshape(arr.shape[0], -1)), axis=1)
+        if bad.any():
+            raise InputError(
+                f"{name} is not finite in {bad.sum()} frame(s) (first: {np.flatnonzero(bad)[:5].tolist()}); "
+                "normalise a complete motion (inverse_kinematics fills gaps)"
+            )
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float64)
+    dtype = x.dtype
+    w = _weights(weights)
+    if not 0.0 <= float(candidate_tolerance) < np.inf:
+        raise InputError(f"candidate_tolerance must be a finite cost difference >= 0, got {candidate_tolerance}")
+    up = up_vector(up_axis)
+    face = np.zeros(3) if facing is None else up_vector(facing)
+
+    edges_np = np.asarray(edges, dtype=int)
+    n_frames = x.shape[0]
+    if segment_translations is None:
+        t = np.zeros((n_frames, n_joints + 1, 3), dtype)
+    else:
+        t = np.asarray(segment_translations, dtype=dtype)
+        if t.shape != (n_frames, n_joints + 1, 3) or not np.all(np.isfinite(t)):
+            raise InputError(
+                f"segment_translations must be finite, shape {(n_frames, n_joints + 1, 3)}, got {t.shape}"
+            )
+    size = bucket_size(n_frames)
+
+    def pad(a):
+        return np.concatenate([a, np.repeat(a[-1:], size - n_frames, axis=0)]).astype(dtype)
+
+    parent = np.full(n_joints + 1, -1)
+    parent[edges_np[:, 1]] = edges_np[:, 0]
+    out = _normalize_core(
+        jnp.asarray(pad(x)),
+        jnp.asarray(pad(q)),
+        jnp.asarray(pad(t)),
+        jnp.asarray(np.arange(size) < n_frames),
+        jnp.asarray(edges_np),
+        jnp.asarray(tree.origin_weights, dtype),
+        jnp.asarray(tree.main_weights, dtype),
+        jnp.asarray(tree.proximal),
+        jnp.asarray(parent),
+        jnp.asarray(tree.leaf),
+        jnp.asarray(np.flatnonzero(tree.leaf)),
+        jnp.asarray(root),
+        jnp.asarray(up, dtype),
+        jnp.asarray(face, dtype),
+        jnp.asarray([w["plane"], w["ratio"], w["spread"]], dtype),
+        jnp.asarray(candidate_tolerance, dtype),
+    )
+    out = {k: np.asarray(v) for k, v in out.items()}
+    d = int(out["default_frame"])
+    if out["up_in_plane"] < 0.1:
+        raise DegenerateMotionError(
+            f"in the default-pose frame {d} the best-fit body plane is (nearly) horizontal, so the "
+            f"up axis {up.tolist()} cannot orient the transverse plane; check up_axis, or pass "
+            "weights that favour an upright frame"
+        )
+    short = np.flatnonzero((out["main_length"] < 1e-6) & (np.arange(n_joints + 1) != root))
+    if short.size:
+        raise DegenerateMotionError(
+            f"segment(s) {short.tolist()} have no length in the default-pose frame {d} (their joints "
+            "coincide), so their long axis is undefined; check the joint positions"
+        )
+    return Normalization(
+        edges=edges_np,
+        root=int(root),
+        default_frame=d,
+        cost=out["cost"][:n_frames],
+        candidates=out["candidate"][:n_frames],
+        candidate_tolerance=float(candidate_tolerance),
+        cost_terms=out["terms"][:n_frames],
+        weights=w,
+        scale=float(out["scale"]),
+        up=up,
+        body_frame=out["body_frame"],
+        limb_frames=out["frames"][:n_frames],
+        limb_rotations=out["limb"][:n_frames],
+        limb_origins=out["origins"][:n_frames],
+        limb_frames_local=out["local"],
+        main_axis=out["main_axis"].astype(int),
+        main_sign=out["main_sign"],
+        joint_offsets=out["joint_offsets"],
+        origins_local=None if segment_translations is None else out["origins_local"],
+    )
+
+
+def normalize(
+    skeleton: Any,
+    motion: Any,
+    *,
+    up_axis: Any = "z",
+    weights: Mapping[str, float] | None = None,
+    facing: Any = None,
+    candidate_tolerance: float = 0.02,
+) -> Normalization:
+    """Skeleton-aligned limb frames for a fitted motion (Sar Dessai et al. 2006, §3).
+
+    ``skeleton`` needs ``.edges`` (J, 2) and ``.root``; ``motion`` needs
+    ``.joint_positions`` (F, J, 3), ``.rotations`` (F, S, 4) and, optionally,
+    ``.segment_translations`` (F, S, 3). ``up_axis`` is the recording's vertical
+    (``Trial.up_axis``); see :func:`normalize_arrays` for the other options.
+    """
+    for obj, names in ((skeleton, ("edges", "root")), (motion, ("joint_positions", "rotations"))):
+        missing = [n for n in names if getattr(obj, n, None) is None]
+        if missing:
+            raise InputError(
+                f"{type(obj).__name__} has no {', '.join(missing)}; pass the Skeleton and Motion "
+                "from fit_rigid / inverse_kinematics (or use normalize_arrays)"
+            )
+    if isinstance(up_axis, str) and up_axis == "unknown":
+        raise InputError(
+            "the recording's up axis is unknown; pass up_axis='z' (or the axis that points up) "
+            "so the transverse plane can be oriented"
+        )
+    return normalize_arrays(
+        motion.joint_positions,
+        skeleton.edges,
+        motion.rotations,
+        root=int(skeleton.root),
+        up_axis=up_axis,
+        weights=weights,
+        facing=facing,
+        segment_translations=getattr(motion, "segment_translations", None),
+        candidate_tolerance=candidate_tolerance,
+    )
+
+
+def write_normalized(group: Any, normalization: Normalization) -> None:
+    """Write a :class:`Normalization` into an h5py group (the result file's ``/normalized``).
+
+    Datasets: ``default_frame`` (), ``cost`` (F,), ``candidates`` (F,), ``cost_terms`` (F, 3)
+    [plane m^2, ratio, spread m], ``body_frame`` (3, 3), ``up`` (3,),
+    ``limb_frames`` (F, S, 3, 3) (columns are the axes), ``limb_origins`` (F, S, 3),
+    ``limb_frames_local`` (S, 3, 3), ``main_axis`` (S,), ``main_sign`` (S,),
+    ``joint_offsets`` (J, 2, 3) and, when known, ``origins_local`` (S, 3).
+    Attributes: the cost ``weights`` and ``scale``, ``candidate_tolerance``, ``root``, ``convention``.
+    """
+    from ..io._h5_values import put as _put
+
+    n = normalization
+    _put(group, "default_frame", np.int64(n.default_frame))
+    for name in (
+        "cost",
+        "candidates",
+        "cost_terms",
+        "body_frame",
+        "up",
+        "limb_frames",
+        "limb_origins",
+        "limb_frames_local",
+        "main_axis",
+        "main_sign",
+        "joint_offsets",
+    ):
+        _put(group, name, np.asarray(getattr(n, name)))
+    if n.origins_local is not None:
+        _put(group, "origins_local", n.origins_local)
+    for key, value in n.weights.items():
+        group.attrs[f"weight_{key}"] = float(value)
+    group.attrs["scale"] = n.scale
+    group.attrs["candidate_tolerance"] = n.candidate_tolerance
+    group.attrs["root"] = n.root
+    group.attrs["convention"] = (
+        "frames are rotation matrices with the axes as columns; x_world = limb_frames @ x_limb "
+        "+ limb_origins; body frame columns: frontal (anterior), sagittal (left), transverse (up)"
+    )
