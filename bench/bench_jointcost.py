@@ -34,7 +34,9 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxskel import bucket_size, synth  # noqa: E402  (importing jaxskel enables float64)
+from jaxskel import synth  # noqa: E402  (importing jaxskel enables float64)
+
+from jaxskel._math.padding import bucket_size
 from jaxskel.joints._cost import solve_joints  # noqa: E402
 
 ALPHA = 1e-4

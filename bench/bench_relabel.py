@@ -79,10 +79,10 @@ def measure(duration: float = 30.0) -> dict:
     )  # fmt: skip
 
     start = time.perf_counter()
-    merged, mapping = jaxskel.merge_labels(trial)
+    merged, mapping = jaxskel.relabel.merge_labels(trial)
     cold = time.perf_counter() - start
     start = time.perf_counter()
-    merged, mapping = jaxskel.merge_labels(trial)
+    merged, mapping = jaxskel.relabel.merge_labels(trial)
     warm = time.perf_counter() - start
 
     pred, true = mapping.physical, truth.physical

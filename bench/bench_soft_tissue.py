@@ -21,7 +21,7 @@ Measures (``tests/soft_tissue_floor.py``): per joint the RMS distance of the cen
 from the truth over frames (hinges: from the axis line), per bone the relative length
 error; means over joints and bones, and the worst. The issue's targets (joint RMSE < 5
 mm, mean bone error < 0.5 %) are drawn on the figure. Beside them, how many of the 17 bone
-errors lie within the bound the fit itself reports (:func:`jaxskel.bone_uncertainty`).
+errors lie within the bound the fit itself reports (:func:`jaxskel.joints.bone_uncertainty`).
 
 Usage::
 
@@ -85,7 +85,7 @@ def run_one(amplitude: float, seed: int, duration: float) -> dict:
         "joint_mm_max": float(np.max(j)),
         "bone_pct_mean": float(np.mean(b)),
         "bone_pct_max": float(np.max(b)),
-        # the fit's own bound on each bone (jaxskel.bone_uncertainty), and how many errors it covers
+        # the fit's own bound on each bone (jaxskel.joints.bone_uncertainty), and how many errors it covers
         "bone_bound_pct_median": float(np.nanmedian(fit["bone_bound"]) * 100),
         "bones_within_bound": int(np.sum(fit["bone_error"] < fit["bone_bound"])),
         "bones": int(np.isfinite(fit["bone_error"]).sum()),

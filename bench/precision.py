@@ -16,7 +16,7 @@ from a float64 :class:`jaxskel.Trial` and once from the same positions as float3
 
 Because the public stages turned out to convert to float64 (see the record), the
 numerical kernels are also timed directly in both precisions, on the arrays the
-float64 chain built: the all-pairs joint solve (``jaxskel.solve_joints`` on the
+float64 chain built: the all-pairs joint solve (``jaxskel.joints.solve_joints`` on the
 first 64 candidate pairs x 300 frames, as one chunk of ``joint_costs``), the tree
 joints on all frames (``solve_joints``), and the IK core (``jaxskel.skeleton._ik._ik_frames``
 with an ``ik_model`` of that dtype). Per kernel: warm seconds, output dtype, and the

@@ -107,7 +107,7 @@ def run_case(name, body, sims, transform) -> dict:
         with tempfile.TemporaryDirectory() as tmp:
             result.save(Path(tmp) / "r.h5")
             back = jaxskel.load_result(Path(tmp) / "r.h5")
-            bvh = jaxskel.read_bvh(result.export_bvh(Path(tmp) / "r.bvh", trial=0))
+            bvh = jaxskel.result.read_bvh(result.export_bvh(Path(tmp) / "r.bvh", trial=0))
     files_ok = len(back.segments.names) == result.n_segments and bvh.n_frames == trial.n_frames
 
     # Trials fitted together share the marker set: the first one's truth names every label.

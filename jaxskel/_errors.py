@@ -53,7 +53,7 @@ class DegenerateMotionWarning(UserWarning):
 class AmbiguousTreeWarning(UserWarning):
     """A joint of the fitted tree costs about as much as a rival pair the tree would
     joint instead: the margin is within the sampling noise of the two costs, so the data
-    do not say which is right (:func:`jaxskel.near_ties`)."""
+    do not say which is right (:func:`jaxskel.joints.near_ties`)."""
 
 
 class NonRigidMarkerWarning(UserWarning):

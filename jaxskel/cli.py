@@ -118,7 +118,7 @@ def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrit
     and each one's folder, where it exists, is writable."""
     import jaxskel
 
-    from .io._atomic import refuse_input
+    from .io import refuse_input
 
     named: dict[str, str] = {}
     for flag, path in outputs.items():
@@ -168,8 +168,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if args.parameterize:
         if result.motion is None:
             raise jaxskel.InputError("--parameterize needs the rigid skeleton and IK; drop --no-rigid")
-        from .sd06._normalize import normalize, write_normalized
-        from .sd06._parameterize import parameterize, write_parameters
+        from .sd06 import normalize, parameterize, write_normalized, write_parameters
 
         norm = normalize(result.skeleton, result.motion, up_axis=_up(result.trial.up_axis))
         params = parameterize(result.skeleton, result.motion, norm)
@@ -180,7 +179,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     result.save(output, overwrite=args.overwrite, extra_groups=extra_groups)
     written = [output]
     if args.plot is not None:
-        from .plots._summary_plots import plot_summary
+        from .plots import plot_summary
 
         plot_summary(result, args.plot, overwrite=args.overwrite)
         written.append(args.plot)
@@ -204,7 +203,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 def _fit_batch(args: argparse.Namespace) -> int:
     import jaxskel
 
-    from .pipeline._batch_io import parse_bone_spec
+    from .pipeline import parse_bone_spec
 
     if not args.directory.is_dir():
         raise jaxskel.InputError(f"{args.directory}: not a directory; fit-batch takes a folder of recordings")
@@ -240,7 +239,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
             cluster.close()
     if args.plot_bones is not None:
         x, y = list(bones)[:2]
-        jaxskel.plot_bone_lengths(batch, x, y, path=args.plot_bones, overwrite=args.overwrite)
+        jaxskel.pipeline.plot_bone_lengths(batch, x, y, path=args.plot_bones, overwrite=args.overwrite)
     counts = batch.counts()
     if not args.quiet:
         print(f"{len(batch)} trials: {counts.get('ok', 0)} fitted, {counts.get('skipped', 0)} already done, "
@@ -274,7 +273,7 @@ def _up(axis: str) -> str:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from .io._sample import sample_path
+    from .io import sample_path
 
     outdir = args.outdir
     outdir.mkdir(parents=True, exist_ok=True)

@@ -100,7 +100,7 @@ def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
     """The same measures for a :func:`jaxskel.fit_skeleton` result (with its IK stage: the
     joints are ``result.motion.joint_positions``), indexed by the true joints and bones
     (NaN where the fitted tree lacks that joint or bone), and ``bone_bound``: the fit's
-    own bound on each bone (:func:`jaxskel.bone_uncertainty`), relative like the error."""
+    own bound on each bone (:func:`jaxskel.joints.bone_uncertainty`), relative like the error."""
     seg_map = segment_map(result, trial, truth)
     true_joint = {frozenset(map(int, e)): j for j, e in enumerate(truth.edges)}
     joint_of = {
@@ -115,7 +115,7 @@ def fitted_errors(result, trial, truth) -> dict[str, np.ndarray]:
     bone_index = {frozenset(map(int, b)): k for k, b in enumerate(truth.bones)}
     bone_error = np.full(len(truth.bones), np.nan)
     bone_bound = np.full(len(truth.bones), np.nan)
-    bounds = jaxskel.bone_uncertainty(result.skeleton)
+    bounds = jaxskel.joints.bone_uncertainty(result.skeleton)
     for (j0, j1), length, bound in zip(result.skeleton.bones, result.skeleton.bone_lengths, bounds):
         k = bone_index.get(frozenset((joint_of[int(j0)], joint_of[int(j1)])))
         if k is not None:

@@ -106,20 +106,20 @@ def test_rerun_skips_finished_and_redoes_partial_outputs(batch, trials, tmp_path
 def test_plot_bone_lengths(batch, tmp_path):
     out, result = batch
     fig = tmp_path / "bones.png"
-    ax = jaxskel.plot_bone_lengths(out / "summary.csv", "middle", "bone:middle", path=fig)
+    ax = jaxskel.pipeline.plot_bone_lengths(out / "summary.csv", "middle", "bone:middle", path=fig)
     assert fig.stat().st_size > 5_000 and len(ax.collections) == 2  # subjects s1 and s2
     with pytest.raises(jaxskel.InputError, match="no column"):
-        jaxskel.plot_bone_lengths(result, "back", "middle")
+        jaxskel.pipeline.plot_bone_lengths(result, "back", "middle")
 
 
 def test_bone_length_by_marker_labels(batch):
     _, result = batch
     r = result[0].result
-    assert jaxskel.bone_length(r, ("R1M1", "R2M2", "R3M3")) == pytest.approx(r.skeleton.bone_lengths[0])
-    assert np.isnan(jaxskel.bone_length(r, ("R1M1", "R1M2", "R3M3")))  # rod1 is a leaf: no bone
-    assert np.isnan(jaxskel.bone_length(r, ("nope", "R2M2", "R3M3")))
+    assert jaxskel.pipeline.bone_length(r, ("R1M1", "R2M2", "R3M3")) == pytest.approx(r.skeleton.bone_lengths[0])
+    assert np.isnan(jaxskel.pipeline.bone_length(r, ("R1M1", "R1M2", "R3M3")))  # rod1 is a leaf: no bone
+    assert np.isnan(jaxskel.pipeline.bone_length(r, ("nope", "R2M2", "R3M3")))
     with pytest.raises(jaxskel.InputError, match="triple"):
-        jaxskel.bone_length(r, ("R1M1", "R2M2"))
+        jaxskel.pipeline.bone_length(r, ("R1M1", "R2M2"))
 
 
 def test_cli_fit_batch_local_and_errors(trials, tmp_path, capsys):

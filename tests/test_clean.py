@@ -22,7 +22,7 @@ def test_jumps_are_rejected_and_nothing_else_on_fast_smooth_motion():
     x[200:202, 1] += np.array([0.04, 0.0, 0.0])  # a 2-frame, 4 cm jump
     x[400, 2] += np.array([0.0, 0.0, 0.05])  # a 1-frame, 5 cm jump
     trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
-    cleaned, report = jaxskel.clean(trial, trim_s=0)
+    cleaned, report = jaxskel.clean.clean(trial, trim_s=0)
     assert report.jump_samples.tolist() == [0, 2, 1, 0]
     assert not cleaned.mask[200:202, 1].any() and not cleaned.mask[400, 2]
     assert cleaned.mask.sum() == trial.mask.sum() - 3
@@ -32,7 +32,7 @@ def test_gap_edges_trimmed_but_not_recording_ends():
     x, rate = smooth_trial()
     x[300:330, 0] = np.nan
     trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
-    cleaned, report = jaxskel.clean(trial, trim_s=3 / rate, reject_jumps=False)
+    cleaned, report = jaxskel.clean.clean(trial, trim_s=3 / rate, reject_jumps=False)
     m = cleaned.mask[:, 0]
     assert not m[297:333].any() and m[296] and m[333]
     assert m[0] and m[-1]  # recording boundaries are not gap edges
@@ -50,7 +50,7 @@ def test_trials_fitted_together_are_cleaned_each_on_its_own_frames():
     y[300:330, 0] = np.nan
     labels = ["a", "b", "c", "d"]
     both = combine_trials([jaxskel.Trial(x, labels, rate), jaxskel.Trial(y, labels, rate)])
-    cleaned, report = jaxskel.clean(both, trim_s=3 / rate)
+    cleaned, report = jaxskel.clean.clean(both, trim_s=3 / rate)
     n = len(x)
     assert cleaned.mask[n - 5 : n + 5].all()
     assert report.jump_samples.tolist() == [0, 2, 0, 0]
@@ -63,7 +63,7 @@ def test_short_lived_and_absent_markers_dropped_with_reasons():
     x[10:40, 1] = 0.5  # present for 0.25 s only
     x[:, 3] = np.nan
     trial = jaxskel.Trial(x, ["a", "b", "c", "d"], rate)
-    cleaned, report = jaxskel.clean(trial)
+    cleaned, report = jaxskel.clean.clean(trial)
     assert cleaned.labels == ("a", "c")
     assert "0.5" in report.dropped["b"] and report.dropped["d"] == "never present"
     assert "dropped b" in report.summary()
@@ -74,7 +74,7 @@ def test_short_lived_and_absent_markers_dropped_with_reasons():
 def test_synthetic_jumps_found():
     body = synth.full_body(seed=1)
     trial, truth = synth.simulate(body, duration=10.0, seed=1, noise=0.001, jumps=20)
-    cleaned, report = jaxskel.clean(trial, trim_s=0)
+    cleaned, report = jaxskel.clean.clean(trial, trim_s=0)
     jumped = truth.jumped & trial.mask
     big = jumped & (np.linalg.norm(trial.positions - truth.clean_positions, axis=-1) > 0.03)
     removed = trial.mask & ~cleaned.mask
@@ -85,7 +85,7 @@ def test_synthetic_jumps_found():
 
 def test_clean_rejects_non_trial():
     with pytest.raises(jaxskel.InputError):
-        jaxskel.clean(np.zeros((3, 2, 3)))
+        jaxskel.clean.clean(np.zeros((3, 2, 3)))
 
 
 def test_a_marker_stored_twice_is_merged_into_its_named_label():
@@ -104,7 +104,7 @@ def test_a_marker_stored_twice_is_merged_into_its_named_label():
     departs[500] += 0.005  # a copy of a, 5 mm off in one frame
     trial = jaxskel.Trial(np.concatenate([np.stack([copy, near, brief, departs], 1), x], 1),
                           ["*0", "*1", "*2", "*3", "a", "b", "c", "d"], rate)
-    cleaned, report = jaxskel.clean(trial, trim_s=0, reject_jumps=False, min_run_s=0)
+    cleaned, report = jaxskel.clean.clean(trial, trim_s=0, reject_jumps=False, min_run_s=0)
     assert report.duplicates == {"*0": "b", "*1": "c"}
     assert cleaned.labels == ("*2", "*3", "a", "b", "c", "d")
     b = cleaned.marker_index("b")[0]
@@ -112,19 +112,19 @@ def test_a_marker_stored_twice_is_merged_into_its_named_label():
     assert report.present_before[5] == len(x) - 30 and report.present_after[5] == len(x)
     assert "duplicate of b" in report.dropped["*0"] and "2 duplicate labels merged" in report.summary()
     # a tighter tolerance than the 0.5 mm offset keeps c's neighbour; 0 disables the step
-    assert jaxskel.clean(trial, min_run_s=0, duplicate_tolerance=0.0003)[1].duplicates == {"*0": "b"}
-    assert jaxskel.clean(trial, min_run_s=0, duplicate_tolerance=0)[1].duplicates == {}
+    assert jaxskel.clean.clean(trial, min_run_s=0, duplicate_tolerance=0.0003)[1].duplicates == {"*0": "b"}
+    assert jaxskel.clean.clean(trial, min_run_s=0, duplicate_tolerance=0)[1].duplicates == {}
     # the copy of d is one when its 0.25 s are enough
-    assert jaxskel.clean(trial, min_run_s=0, duplicate_min_s=0.2)[1].duplicates["*2"] == "d"
+    assert jaxskel.clean.clean(trial, min_run_s=0, duplicate_min_s=0.2)[1].duplicates["*2"] == "d"
     with pytest.raises(jaxskel.InputError, match="duplicate_tolerance"):
-        jaxskel.clean(trial, duplicate_tolerance=-1.0)
+        jaxskel.clean.clean(trial, duplicate_tolerance=-1.0)
 
 
 def test_duplicates_are_found_whatever_the_marker_order():
     x, rate = smooth_trial()
     trial = jaxskel.Trial(np.concatenate([x, x[:, 2:3]], 1), ["a", "b", "c", "d", "c2"], rate)
     for order in ([0, 1, 2, 3, 4], [4, 3, 2, 1, 0], [2, 4, 0, 3, 1]):
-        _, report = jaxskel.clean(trial.select_markers(order))
+        _, report = jaxskel.clean.clean(trial.select_markers(order))
         # equal sample counts, both named: the first of the two in the given order is kept
         first = "c" if order.index(2) < order.index(4) else "c2"
         assert report.duplicates == {({"c", "c2"} - {first}).pop(): first}

@@ -49,7 +49,7 @@ def test_resolution_is_the_weakest_direction_nothing_else_fixes():
     (its weakest direction fixed by that placement) reads its next one; no fit: unknown."""
     res = [[0.30, 0.05, 0.01], [0.40, 0.02, 0.01], NAN3]
     sk = _skeleton(res, _cosines(), placed=[1])
-    np.testing.assert_allclose(jaxskel.joint_resolution(sk), [0.30, 0.02, np.nan])
+    np.testing.assert_allclose(jaxskel.joints.joint_resolution(sk), [0.30, 0.02, np.nan])
 
 
 def test_bone_uncertainty_projects_each_joints_resolutions_on_the_bone():
@@ -61,28 +61,28 @@ def test_bone_uncertainty_projects_each_joints_resolutions_on_the_bone():
     e01 = np.hypot(0.30 * 0.6, 0.05 * 0.8)
     e10 = 0.0  # only the axis lies along the bone
     e12, e21 = 0.01, 0.02
-    np.testing.assert_allclose(jaxskel.bone_uncertainty(sk), [np.hypot(e01, e10), np.hypot(e12, e21)])
+    np.testing.assert_allclose(jaxskel.joints.bone_uncertainty(sk), [np.hypot(e01, e10), np.hypot(e12, e21)])
     unplaced = _skeleton(res, _cosines())
-    assert jaxskel.bone_uncertainty(unplaced)[0] == pytest.approx(np.hypot(e01, 0.40))
+    assert jaxskel.joints.bone_uncertainty(unplaced)[0] == pytest.approx(np.hypot(e01, 0.40))
     res[2] = NAN3
     partial = _skeleton(res, _cosines(), placed=[1])
-    np.testing.assert_allclose(jaxskel.bone_uncertainty(partial), [np.hypot(e01, e10), e12])
+    np.testing.assert_allclose(jaxskel.joints.bone_uncertainty(partial), [np.hypot(e01, e10), e12])
     res[1] = NAN3
     none = _skeleton(res, _cosines())
-    assert np.isnan(jaxskel.bone_uncertainty(none)[1])
+    assert np.isnan(jaxskel.joints.bone_uncertainty(none)[1])
 
 
 def test_undetermined_joints_are_those_beyond_the_limit_that_the_motion_exercises():
     res = [[0.30, 0.05, 0.01], [0.40, 0.02, 0.01], [0.50, 0.2, 0.1]]
     # joint 1: a placed hinge (0.02 m past its axis); joint 2: not exercised (its own warning)
     sk = _skeleton(res, _cosines(), placed=[1], exercise=[10.0, 10.0, 0.5 * MIN_EXERCISE_DEG])
-    assert jaxskel.undetermined_joints(sk) == [jaxskel.UndeterminedJoint(0, 0.30)]
-    assert jaxskel.undetermined_joints(sk, limit=0.35) == []
-    assert [u.joint for u in jaxskel.undetermined_joints(sk, limit=0.01)] == [0, 1]
+    assert jaxskel.joints.undetermined_joints(sk) == [jaxskel.joints.UndeterminedJoint(0, 0.30)]
+    assert jaxskel.joints.undetermined_joints(sk, limit=0.35) == []
+    assert [u.joint for u in jaxskel.joints.undetermined_joints(sk, limit=0.01)] == [0, 1]
     assert UNDETERMINED_RESOLUTION == 0.1
 
 
-@pytest.mark.parametrize("function", [jaxskel.joint_resolution, jaxskel.bone_uncertainty, jaxskel.undetermined_joints])
+@pytest.mark.parametrize("function", [jaxskel.joints.joint_resolution, jaxskel.joints.bone_uncertainty, jaxskel.joints.undetermined_joints])
 def test_anything_but_a_skeleton_is_refused_with_a_clear_error(function):
     with pytest.raises(jaxskel.InputError, match=rf"{function.__name__}\(\) takes the rigid skeleton of a fit"):
         function("result.h5")
@@ -103,7 +103,7 @@ def test_a_fit_reports_resolutions_and_bounds_on_the_linkage():
         if report["anchor"][j] in set(result.edges[i].tolist()):  # the bone lies on j's anchor
             assert np.sum(report["bone_cosines"][j, i] ** 2) == pytest.approx(1.0, abs=1e-9)
         assert np.all((report["bone_cosines"][j, i] >= 0) & (report["bone_cosines"][j, i] <= 1))
-    (bound,) = jaxskel.bone_uncertainty(result.skeleton)
+    (bound,) = jaxskel.joints.bone_uncertainty(result.skeleton)
     (length,) = result.skeleton.bone_lengths
     middle = truth.bone_lengths[np.argmax(truth.bone_lengths)]
     assert abs(length - middle) < bound < 0.05

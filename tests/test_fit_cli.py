@@ -49,7 +49,7 @@ def test_result_holds_every_stage(fitted, linkage_trial):
 
 
 def test_spectrum_plot_marks_the_count(fitted):
-    ax = jaxskel.plot_spectrum(fitted)
+    ax = jaxskel.plots.plot_spectrum(fitted)
     assert len(ax.lines[0].get_ydata()) == len(fitted.segmentation.eigenvalues)
     assert "eigengap: 3" in [t.get_text() for t in ax.get_legend().get_texts()]
 
@@ -89,7 +89,7 @@ def test_result_file_schema_roundtrip(fitted, tmp_path):
     # how well the recording fixes each joint and bone (jaxskel.joints._determination)
     np.testing.assert_allclose(back.joints.resolution, fitted.joint_resolutions())
     assert np.isfinite(back.joints.resolution).all() and back.joints.undetermined.shape == (0,)
-    np.testing.assert_allclose(back.skeleton.bone_uncertainty, jaxskel.bone_uncertainty(fitted.skeleton))
+    np.testing.assert_allclose(back.skeleton.bone_uncertainty, jaxskel.joints.bone_uncertainty(fitted.skeleton))
     assert back.skeleton.bone_uncertainty.shape == back.skeleton.bone_lengths.shape
     # a reader of a newer schema refuses with a clear message
     with h5py.File(path, "a") as f:
@@ -266,7 +266,7 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     assert main(["fit", str(src), "-o", str(tmp_path / "joints.h5"), "--bvh", str(bvh), "--quiet", "--no-rigid"]) == 2
     assert "drop --no-rigid" in capsys.readouterr().err and not bvh.exists()
     assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--quiet"]) == 0
-    data = jaxskel.read_bvh(bvh)
+    data = jaxskel.result.read_bvh(bvh)
     assert data.n_frames == trial.n_frames and len(data.names) == 3
     assert data.frame_time == pytest.approx(1.0 / trial.rate)
 
@@ -341,12 +341,12 @@ def test_two_trials_fit_together_and_export_bvh_per_trial(linkage_trial, tmp_pat
     assert r.trial_bounds == ((0, a.n_frames), (a.n_frames, trial.n_frames))
     assert r.n_segments == 3 and len(r.edges) == 2
     # BVH straight from the result: segment names, the recording's rate, one trial's frames.
-    second = jaxskel.read_bvh(r.export_bvh(tmp_path / "second.bvh", trial=1))
+    second = jaxskel.result.read_bvh(r.export_bvh(tmp_path / "second.bvh", trial=1))
     assert set(second.names) == set(r.segment_names)
     assert second.n_frames == b.n_frames and second.frame_time == pytest.approx(1.0 / trial.rate)
     root = second.names.index(r.segment_names[r.skeleton.root])
     np.testing.assert_allclose(second.world_positions()[:, root], r.motion.root_position[a.n_frames :], atol=1e-6)
-    assert jaxskel.read_bvh(r.export_bvh(tmp_path / "all.bvh")).n_frames == trial.n_frames
+    assert jaxskel.result.read_bvh(r.export_bvh(tmp_path / "all.bvh")).n_frames == trial.n_frames
     with pytest.raises(jaxskel.InputError, match="trial must be an index 0..1"):
         r.export_bvh(tmp_path / "third.bvh", trial=2)
     with pytest.raises(jaxskel.InputError, match="rigid=True and ik=True"):

@@ -14,7 +14,7 @@ from jaxskel import synth
 def linkage():
     trial, truth = synth.simulate(synth.linkage(), duration=1.5, rate=60, seed=3, noise=0.0005)
     x, mask = trial.to_arrays()
-    structure = jaxskel.SkeletonStructure(truth.edges, truth.marker_segment)
+    structure = jaxskel.learn.SkeletonStructure(truth.edges, truth.marker_segment)
     return x, mask, truth, structure
 
 
@@ -33,7 +33,7 @@ def test_joint_cost_fn_grad_matches_fd_inside_jit_and_vmap(linkage):
     v = np.random.default_rng(1).normal(size=xs.shape) * ms[..., None]
 
     def solve(xs):
-        return jax.vmap(lambda a, m: jaxskel.joint_cost_fn(a, m, alpha=1e-3, **tight))(xs, ms)
+        return jax.vmap(lambda a, m: jaxskel.learn.joint_cost_fn(a, m, alpha=1e-3, **tight))(xs, ms)
 
     for name, out, eps, rel in (
         ("cost", lambda s: jnp.sum(s.cost), 1e-6, 1e-6),
@@ -46,20 +46,20 @@ def test_joint_cost_fn_grad_matches_fd_inside_jit_and_vmap(linkage):
         g = jax.jit(jax.grad(loss))(xs)
         fd = directional_fd(jax.jit(loss), [xs], [v], eps=eps)
         assert float(jnp.sum(g * v)) == pytest.approx(float(fd), rel=rel), name
-    sol = jaxskel.joint_cost_fn(xs, ms)
+    sol = jaxskel.learn.joint_cost_fn(xs, ms)
     assert sol.positions.shape == (2, x.shape[0], 3) and bool(jnp.all(sol.converged))
 
 
 def test_rigid_fit_fn_bone_length_and_grad(linkage):
     x, mask, truth, structure = linkage
     jp = truth.joint_positions
-    fit = jax.jit(jaxskel.rigid_fit_fn)(structure, x, mask, jp)
+    fit = jax.jit(jaxskel.learn.rigid_fit_fn)(structure, x, mask, jp)
     assert int(fit.result) == 0 and fit.marker_offsets.shape == (9, 3) and fit.joint_offsets.shape == (2, 2, 3)
     assert float(fit.bone_lengths[0]) == pytest.approx(truth.bone_lengths[0], abs=5e-4)
     assert float(jnp.max(fit.point_rms)) < 2e-3
 
     def bone(x, jp):
-        return jaxskel.rigid_fit_fn(structure, x, mask, jp).bone_lengths[0]
+        return jaxskel.learn.rigid_fit_fn(structure, x, mask, jp).bone_lengths[0]
 
     gx, gj = jax.jit(jax.grad(bone, argnums=(0, 1)))(x, jp)
     rng = np.random.default_rng(2)
@@ -70,12 +70,12 @@ def test_rigid_fit_fn_bone_length_and_grad(linkage):
 
 def test_ik_fn_fits_and_grad_matches_fd(linkage):
     x, mask, truth, structure = linkage
-    fit = jaxskel.rigid_fit_fn(structure, x, mask, truth.joint_positions)
-    sol = jax.jit(jaxskel.ik_fn)(structure, x, mask, fit.joint_offsets, fit.marker_offsets)
+    fit = jaxskel.learn.rigid_fit_fn(structure, x, mask, truth.joint_positions)
+    sol = jax.jit(jaxskel.learn.ik_fn)(structure, x, mask, fit.joint_offsets, fit.marker_offsets)
     assert sol.rotations.shape == (x.shape[0], 3, 4) and float(jnp.median(sol.rms)) < 1.5e-3
 
     def loss(offsets, markers):
-        return jnp.mean(jaxskel.ik_fn(structure, markers, mask, fit.joint_offsets, offsets).rms ** 2)
+        return jnp.mean(jaxskel.learn.ik_fn(structure, markers, mask, fit.joint_offsets, offsets).rms ** 2)
 
     go, gx = jax.jit(jax.grad(loss, argnums=(0, 1)))(fit.marker_offsets, x)
     rng = np.random.default_rng(3)
@@ -85,10 +85,10 @@ def test_ik_fn_fits_and_grad_matches_fd(linkage):
 
 
 def test_structure_is_static_and_checked():
-    s = jaxskel.SkeletonStructure([[0, 1], [1, 2]], [0, 0, 1, -1, 2])
-    assert jax.tree_util.tree_leaves(s) == [] and hash(s) == hash(jaxskel.SkeletonStructure([[0, 1], [1, 2]], [0, 0, 1, -1, 2]))
+    s = jaxskel.learn.SkeletonStructure([[0, 1], [1, 2]], [0, 0, 1, -1, 2])
+    assert jax.tree_util.tree_leaves(s) == [] and hash(s) == hash(jaxskel.learn.SkeletonStructure([[0, 1], [1, 2]], [0, 0, 1, -1, 2]))
     assert s.root == 0 and s.segment_points().shape == (3, 3) and s.bones()[0].tolist() == [[0, 1]]
     with pytest.raises(jaxskel.InputError, match="tree"):
-        jaxskel.SkeletonStructure([[0, 1], [0, 1]], [0, 1, 2])
+        jaxskel.learn.SkeletonStructure([[0, 1], [0, 1]], [0, 1, 2])
     with pytest.raises(jaxskel.InputError, match="marker_segment"):
-        jaxskel.SkeletonStructure([[0, 1]], [0, 5])
+        jaxskel.learn.SkeletonStructure([[0, 1]], [0, 5])

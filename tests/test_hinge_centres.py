@@ -204,6 +204,6 @@ def test_fit_rigid_rejects_bad_placement_arguments():
     trial, truth = synth.simulate(synth.linkage(), duration=3.0, seed=0, noise=0.001)
     joints = truth.joint_positions
     with pytest.raises(jaxskel.InputError, match="sliding_joints"):
-        jaxskel.fit_rigid(trial, truth.marker_segment, truth.edges, joints, sliding_joints=[True] * 5)
+        jaxskel.skeleton.fit_rigid(trial, truth.marker_segment, truth.edges, joints, sliding_joints=[True] * 5)
     with pytest.raises(jaxskel.InputError, match="joint_weight"):
-        jaxskel.fit_rigid(trial, truth.marker_segment, truth.edges, joints, joint_weight=0.0)
+        jaxskel.skeleton.fit_rigid(trial, truth.marker_segment, truth.edges, joints, joint_weight=0.0)

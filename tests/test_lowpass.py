@@ -1,4 +1,4 @@
-"""Low-pass filtering of the markers before inverse kinematics (jaxskel.clean._lowpass).
+"""Low-pass filtering of the markers before inverse kinematics (jaxskel.clean.clean._lowpass).
 
 Known answers on smooth trajectories with white noise of known size, gap and trial
 boundaries that must not leak, invariance to rigid motions of the recording, and the
@@ -39,7 +39,7 @@ def test_auto_cutoff_takes_out_most_of_the_noise_and_keeps_the_motion():
     truth = _smooth()
     noise = 0.002
     x = truth + np.random.default_rng(1).normal(0, noise, truth.shape)
-    low = jaxskel.lowpass_markers(_trial(x))
+    low = jaxskel.clean.lowpass_markers(_trial(x))
     assert np.all((low.cutoff_hz > 1.0) & (low.cutoff_hz < 20.0)), low.cutoff_hz
     error = np.sqrt(np.mean((low.trial.positions - truth) ** 2, axis=(0, 2)))
     assert np.all(error < 0.45 * noise), error / noise
@@ -49,7 +49,7 @@ def test_auto_cutoff_takes_out_most_of_the_noise_and_keeps_the_motion():
 def test_a_marker_without_noise_is_left_as_measured():
     x = _smooth()
     x[:, 1] += np.random.default_rng(2).normal(0, 0.001, x[:, 1].shape)
-    low = jaxskel.lowpass_markers(_trial(x))
+    low = jaxskel.clean.lowpass_markers(_trial(x))
     assert np.isfinite(low.cutoff_hz[1]) and np.isnan(low.cutoff_hz[[0, 2, 3]]).all()
     np.testing.assert_array_equal(low.trial.positions[:, [0, 2, 3]], x[:, [0, 2, 3]])
 
@@ -62,7 +62,7 @@ def test_a_marker_whose_differences_are_motion_is_left_as_measured():
     t = np.arange(1200) / RATE
     x = np.zeros((1200, 1, 3)) + np.random.default_rng(8).normal(0, 0.0002, (1200, 1, 3))
     x[:, 0, 0] += 0.05 * np.sin(2 * np.pi * 15.0 * t)
-    low = jaxskel.lowpass_markers(_trial(x))
+    low = jaxskel.clean.lowpass_markers(_trial(x))
     assert np.isnan(low.cutoff_hz[0])
     np.testing.assert_array_equal(low.trial.positions, x)
 
@@ -74,14 +74,14 @@ def test_gaps_stay_gaps_and_nothing_leaks_across_them():
     x = np.zeros((600, 1, 3)) + rng.normal(0, 0.002, (600, 1, 3))
     x[300:] += 1.0
     x[290:300] = np.nan
-    low = jaxskel.lowpass_markers(_trial(x), 6.0)
+    low = jaxskel.clean.lowpass_markers(_trial(x), 6.0)
     y = low.trial.positions
     np.testing.assert_array_equal(np.isnan(y), np.isnan(x))
     assert np.all(np.abs(y[280:290]) < 0.01) and np.all(np.abs(y[300:310] - 1.0) < 0.01)
     short = x.copy()
     short[:, 0] = np.nan
     short[100:106, 0] = 0.5 + rng.normal(0, 0.002, (6, 3))  # 6 samples: under the padding
-    kept = jaxskel.lowpass_markers(_trial(short), 6.0)
+    kept = jaxskel.clean.lowpass_markers(_trial(short), 6.0)
     np.testing.assert_array_equal(kept.trial.positions, short)
     assert np.isnan(kept.cutoff_hz[0])
 
@@ -92,9 +92,9 @@ def test_trials_fitted_together_are_filtered_apart():
     x = np.zeros((600, 1, 3)) + np.random.default_rng(4).normal(0, 0.002, (600, 1, 3))
     x[300:] += 1.0
     together = _trial(x, metadata={"trial_bounds": ((0, 300), (300, 600))})
-    y = jaxskel.lowpass_markers(together, 6.0).trial.positions
+    y = jaxskel.clean.lowpass_markers(together, 6.0).trial.positions
     assert np.all(np.abs(y[290:300]) < 0.01) and np.all(np.abs(y[300:310] - 1.0) < 0.01)
-    smeared = jaxskel.lowpass_markers(_trial(x), 6.0).trial.positions  # one recording: the jump is motion
+    smeared = jaxskel.clean.lowpass_markers(_trial(x), 6.0).trial.positions  # one recording: the jump is motion
     assert np.abs(smeared[297:300]).max() > 0.05
 
 
@@ -103,8 +103,8 @@ def test_rotating_and_shifting_the_recording_changes_nothing_but_the_frame():
     x = truth + np.random.default_rng(6).normal(0, 0.002, truth.shape)
     rot = random_rotation(7)
     shift = np.array([3.0, -2.0, 0.5])
-    low = jaxskel.lowpass_markers(_trial(x))
-    moved = jaxskel.lowpass_markers(_trial(x @ rot.T + shift))
+    low = jaxskel.clean.lowpass_markers(_trial(x))
+    moved = jaxskel.clean.lowpass_markers(_trial(x @ rot.T + shift))
     np.testing.assert_allclose(moved.cutoff_hz, low.cutoff_hz)
     np.testing.assert_allclose(moved.trial.positions, low.trial.positions @ rot.T + shift, atol=1e-9)
 
@@ -114,7 +114,7 @@ def test_a_given_cutoff_passes_slow_motion_and_stops_fast():
     x = np.zeros((2400, 2, 3))
     x[:, 0, 0] = np.sin(2 * np.pi * 1.0 * t)
     x[:, 1, 0] = np.sin(2 * np.pi * 30.0 * t)
-    low = jaxskel.lowpass_markers(_trial(x), 6.0, order=2)
+    low = jaxskel.clean.lowpass_markers(_trial(x), 6.0, order=2)
     y = low.trial.positions[200:-200, :, 0]
     assert np.abs(y[:, 0] - x[200:-200, 0, 0]).max() < 0.01
     assert np.abs(y[:, 1]).max() < 0.01
@@ -133,9 +133,9 @@ def test_a_given_cutoff_passes_slow_motion_and_stops_fast():
 )
 def test_bad_arguments_are_named(cutoff, kw, message):
     with pytest.raises(jaxskel.InputError, match=message):
-        jaxskel.lowpass_markers(_trial(_smooth()), cutoff, **kw)
+        jaxskel.clean.lowpass_markers(_trial(_smooth()), cutoff, **kw)
     with pytest.raises(jaxskel.InputError, match="takes a jaxskel.Trial"):
-        jaxskel.lowpass_markers(_smooth())
+        jaxskel.clean.lowpass_markers(_smooth())
 
 
 def test_fit_refuses_a_bad_cutoff_before_fitting():

@@ -108,19 +108,19 @@ def test_plots_label_segments_by_name(body_fit, tmp_path):
     tree diagram."""
     _, _, result = body_fit
     names = list(result.segment_names)
-    costs = jaxskel.plot_joint_costs(result)
+    costs = jaxskel.plots.plot_joint_costs(result)
     assert [t.get_text() for t in costs.get_xticklabels()] == names
-    blocks = jaxskel.plot_distance_std(result)
+    blocks = jaxskel.plots.plot_distance_std(result)
     (top,) = [child for child in blocks.get_children() if type(child).__name__ == "SecondaryAxis"]
     assert sorted(t.get_text() for t in top.get_xticklabels()) == sorted(names)
-    legend = jaxskel.plot_skeleton_3d(result).get_legend()
+    legend = jaxskel.plots.plot_skeleton_3d(result).get_legend()
     assert [t.get_text() for t in legend.get_texts()] == names
-    tree = jaxskel.plot_tree(result)  # the hierarchy: every segment once, the root on top
+    tree = jaxskel.plots.plot_tree(result)  # the hierarchy: every segment once, the root on top
     boxes = {t.get_text(): t.get_position() for t in tree.texts}
     assert sorted(boxes) == sorted(names)
     root = names[result.topology.root]
     assert boxes[root][1] == max(y for _, y in boxes.values())
     for p, c in result.edges.tolist():  # a child one level below its parent
         assert boxes[names[c]][1] == boxes[names[p]][1] - 1
-    jaxskel.plot_summary(result, tmp_path / "summary.png")
+    jaxskel.plots.plot_summary(result, tmp_path / "summary.png")
     assert (tmp_path / "summary.png").stat().st_size > 10_000

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from calibration_motions import main_movements, perturbed, rotvec_to_matrix, truth_arrays, with_default_pose
 
-from jaxskel import DegenerateMotionError, InputError, normalize, synth
+from jaxskel import DegenerateMotionError, InputError, synth
+
+from jaxskel.sd06 import normalize
 from jaxskel._math.geometry import matrix_to_quat, quat_to_matrix
 from jaxskel.sd06._normalize import default_pose_terms, normalize_arrays, write_normalized
 

@@ -11,7 +11,9 @@ import pytest
 from calibration_motions import main_movements, perturbed, rotvec_to_matrix, truth_arrays
 from matplotlib.figure import Figure
 
-from jaxskel import DegenerateMotionWarning, InputError, Normalization, Parameterization, parameterize, synth
+from jaxskel import DegenerateMotionWarning, InputError, synth
+
+from jaxskel.sd06 import Normalization, Parameterization, parameterize
 from jaxskel._math.geometry import matrix_to_quat
 from jaxskel.sd06._normalize import normalize_arrays
 from jaxskel.sd06._parameterize import parameterize_arrays, parameterize_normalized, write_parameters

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from helpers import random_rotation
 
-from jaxskel import PoseExchange, synth
+from jaxskel import synth
+
+from jaxskel.joints import PoseExchange
 from jaxskel.joints._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
 from jaxskel.joints._topology import MIN_PAIR_FRAMES
 

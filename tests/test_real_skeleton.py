@@ -40,10 +40,10 @@ def _fit(rel: str, n_segments: int | None):
 
 def _compare(result, asf: Path) -> dict[str, tuple[float, float, float]]:
     """Fitted part -> (fitted, asf, bound) in metres, printed. ``bound`` is how far the
-    bone's joints' resolutions let its length move (:func:`jaxskel.bone_uncertainty`; a
+    bone's joints' resolutions let its length move (:func:`jaxskel.joints.bone_uncertainty`; a
     lower bound where a joint has none, e.g. a knee between two two-marker segments)."""
     reference = asf_bone_lengths(asf)
-    bound = jaxskel.bone_uncertainty(result.skeleton)
+    bound = jaxskel.joints.bone_uncertainty(result.skeleton)
     out = {}
     for part, b in sorted(bone_index_by_part(result).items()):
         names = [part[0].lower() + bone for bone in ASF_BONES[part[2:]]]
@@ -116,11 +116,11 @@ def test_flat_spectrum_names_its_joined_segments_and_the_rigid_count():
     1.3 m). The first rigid count, 13, leaves the right thigh marker alone, so 8 is kept
     (README, Known limits); the five non-rigid groups are named and 13 is reported as the
     count to compare."""
-    trial, _ = jaxskel.clean(jaxskel.load(DATA / "numediart" / "85_12.c3d"))
-    seg = jaxskel.segment_markers(trial)
+    trial, _ = jaxskel.clean.clean(jaxskel.load(DATA / "numediart" / "85_12.c3d"))
+    seg = jaxskel.segment.segment_markers(trial)
     assert (seg.count_rule, seg.n_segments, seg.rigid_count) == ("eigengap", 8, 13)
     assert len(seg.nonrigid_groups()) == 5
-    thirteen = jaxskel.segment_markers(trial, 13)
+    thirteen = jaxskel.segment.segment_markers(trial, 13)
     assert thirteen.nonrigid_groups() == [] and thirteen.groups.count(("RTHI",)) == 1
 
 
@@ -172,7 +172,7 @@ def test_cmu_legs_with_automatic_segment_count():
     # the joint costs' choice, rejected by the poses, is not reported as a rival either
     assert not [t for t in result.near_ties() if frozenset(t.rival) == frozenset(exchange.removed)]
     # without the check: the joint costs' tree (the paper's), misfits still reported
-    plain = jaxskel.fit_topology(result.trial, result.segmentation, result.topology.pair_costs, pose_check=False)
+    plain = jaxskel.joints.fit_topology(result.trial, result.segmentation, result.topology.pair_costs, pose_check=False)
     assert plain.pose_exchanges == () and frozenset(exchange.removed) in {frozenset(e) for e in plain.edges.tolist()}
     np.testing.assert_array_equal(plain.fixed_misfit, result.topology.fixed_misfit)
     bones = _compare(result, DATA / "timegan_cmu" / "02.asf")

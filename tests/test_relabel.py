@@ -58,7 +58,7 @@ def relabelled_body():
         body, motion="walk", duration=10.0, seed=0, noise=0.001, soft_tissue=0.005,
         gaps=3, ghosts=6, relabel=True,
     )  # fmt: skip
-    merged, mapping = jaxskel.merge_labels(trial)
+    merged, mapping = jaxskel.relabel.merge_labels(trial)
     return body, trial, truth, merged, mapping
 
 
@@ -108,7 +108,7 @@ def test_cannot_link_beats_a_tiny_distance():
     span = seen[10:80]  # 70 frames, inside the source's first run
     duplicate[span, 0] = pos[span, source] + 0.001
     dup = trial.replace(positions=np.concatenate([pos, duplicate], axis=1), labels=(*trial.labels, "dup"))
-    _, mapping = jaxskel.merge_labels(dup)
+    _, mapping = jaxskel.relabel.merge_labels(dup)
     assert mapping.physical[-1] != mapping.physical[source]
     assert_no_cooccurring_merge(dup, mapping)
 
@@ -117,7 +117,7 @@ def test_invariant_to_label_order_and_rigid_motion(relabelled_body):
     _, trial, _, _, mapping = relabelled_body
     perm = np.random.default_rng(3).permutation(trial.n_markers)
     moved = trial.select_markers(perm).transformed(random_rotation(4), np.array([2.0, -1.0, 0.5]))
-    _, moved_mapping = jaxskel.merge_labels(moved)
+    _, moved_mapping = jaxskel.relabel.merge_labels(moved)
     assert partition(moved.labels, moved_mapping.physical) == partition(trial.labels, mapping.physical)
 
 
@@ -212,7 +212,7 @@ def test_nothing_to_merge_is_identity():
         positions=np.concatenate([trial.positions, unseen], axis=1), labels=(*trial.labels, "x")
     )
     assert not needs_merging(with_unseen)
-    merged, mapping = jaxskel.merge_labels(with_unseen)
+    merged, mapping = jaxskel.relabel.merge_labels(with_unseen)
     assert merged.labels == trial.labels and mapping.n_physical == trial.n_markers
     np.testing.assert_array_equal(mapping.physical, [*range(trial.n_markers), -1])
     np.testing.assert_array_equal(merged.positions, trial.positions)
@@ -222,11 +222,11 @@ def test_nothing_to_merge_is_identity():
 
 def test_exact_marker_count_is_honoured(relabelled_body):
     body, trial, truth, _, mapping = relabelled_body
-    _, forced = jaxskel.merge_labels(trial, n_physical=body.n_markers + 2)
+    _, forced = jaxskel.relabel.merge_labels(trial, n_physical=body.n_markers + 2)
     assert forced.n_physical == body.n_markers + 2
     assert_no_cooccurring_merge(trial, forced)
     with pytest.raises(InputError, match="n_physical"):
-        jaxskel.merge_labels(trial, n_physical=10)
+        jaxskel.relabel.merge_labels(trial, n_physical=10)
 
 
 def test_every_marker_lost_at_once_fails_clearly():
@@ -235,7 +235,7 @@ def test_every_marker_lost_at_once_fails_clearly():
     pos = np.array(trial.positions)
     pos[200:205] = np.nan  # the subject leaves the volume
     with pytest.raises(DegenerateMotionError, match="frame 200"):
-        jaxskel.merge_labels(trial.replace(positions=pos))
+        jaxskel.relabel.merge_labels(trial.replace(positions=pos))
 
 
 def test_too_few_shared_markers_fails_clearly():
@@ -243,17 +243,17 @@ def test_too_few_shared_markers_fails_clearly():
     pos[50:, 0] = np.nan  # marker 0 is lost and comes back as marker 3:
     pos[:50, 3] = np.nan  # never four markers to align frames on
     with pytest.raises(DegenerateMotionError, match="no frame has 4 markers"):
-        jaxskel.merge_labels(jaxskel.Trial(pos, list("abcd"), 100.0))
+        jaxskel.relabel.merge_labels(jaxskel.Trial(pos, list("abcd"), 100.0))
 
 
 def test_bad_arguments():
     trial = jaxskel.Trial(np.zeros((5, 4, 3)), list("abcd"), 100.0)
     with pytest.raises(InputError, match="Trial"):
-        jaxskel.merge_labels(np.zeros((5, 4, 3)))
+        jaxskel.relabel.merge_labels(np.zeros((5, 4, 3)))
     with pytest.raises(InputError, match="sample_interval_s"):
-        jaxskel.merge_labels(trial, sample_interval_s=0.0)
+        jaxskel.relabel.merge_labels(trial, sample_interval_s=0.0)
     with pytest.raises(InputError, match="no marker samples"):
-        jaxskel.merge_labels(trial.replace(positions=np.full((5, 4, 3), np.nan)))
+        jaxskel.relabel.merge_labels(trial.replace(positions=np.full((5, 4, 3), np.nan)))
 
 
 # ------------------------------------------------------------------ real data
@@ -270,7 +270,7 @@ def _load(path):
 def test_real_raw_slots_merge_to_62_rigidly_moving_markers():
     """S01: 76 Vicon slots (205 runs) of the 62-marker set; a slot may hold different markers."""
     trial = _load(AUTO / "S01_Pronetokneel01_mksrem.c3d")
-    merged, mapping = jaxskel.merge_labels(trial)
+    merged, mapping = jaxskel.relabel.merge_labels(trial)
     assert mapping.n_fragments > 200  # slots cut at every gap
     assert mapping.n_physical == 62
     assert_no_cooccurring_merge(trial, mapping)
@@ -302,7 +302,7 @@ def test_real_labelled_recording_relabelled_after_every_gap():
     for k in range(runs.label.size):
         pos[runs.start[k] : runs.stop[k], k] = trial.positions[runs.start[k] : runs.stop[k], runs.label[k]]
     raw = trial.replace(positions=pos, labels=tuple(f"*{k}" for k in range(runs.label.size)))
-    merged, mapping = jaxskel.merge_labels(raw)
+    merged, mapping = jaxskel.relabel.merge_labels(raw)
     assert mapping.n_physical == 62
     assert_no_cooccurring_merge(raw, mapping)
     # Weighted by samples: the last 30 frames (the subject runs off, 10-20 markers lost at
@@ -318,7 +318,7 @@ def test_real_unlabelled_trajectories_of_a_gait_trial():
     trial = _load(REAL / "pycgm" / "Movement_trial.c3d")
     stars = trial.select_markers([lab for lab in trial.labels if lab.startswith("*")])
     assert stars.n_markers == 42
-    merged, mapping = jaxskel.merge_labels(stars)
+    merged, mapping = jaxskel.relabel.merge_labels(stars)
     assert mapping.n_physical == 39
     # *127 and *145 come back after gaps under the same slot and are rejoined; *153 (78
     # frames in 46 pieces, far from the body), *155 (12 frames) and *156 (7) are ghosts.

@@ -53,7 +53,7 @@ def _misgrouped(result, truth) -> int:
 
 def test_skeleton_confirms_correct_merges(fitted_relabelled_body):
     trial, truth, mapping, result = fitted_relabelled_body
-    merged, confirmed = jaxskel.confirm_merges(trial, mapping, result)
+    merged, confirmed = jaxskel.relabel.confirm_merges(trial, mapping, result)
     info = confirmed.diagnostics["skeleton"]
     assert info["applied"] and info["explained_fraction"] > 0.95
     before = label_accuracy(mapping.physical, truth.physical)
@@ -67,7 +67,7 @@ def test_skeleton_confirms_correct_merges(fitted_relabelled_body):
     assert np.nanmedian(confirmed.link_error) < 0.006
     assert 0 <= confirmed.link_confidence.min() and confirmed.link_confidence.max() <= 1
     assert np.median(confirmed.link_confidence) > 0.9
-    assert merged.n_markers == confirmed.n_physical and not jaxskel.needs_merging(merged)
+    assert merged.n_markers == confirmed.n_physical and not jaxskel.relabel.needs_merging(merged)
 
 
 def _swap_continuations(phys, start, stop, link_from, link_to, seg, avoid):
@@ -106,7 +106,7 @@ def test_skeleton_corrects_wrong_merges(fitted_relabelled_body):
         physical=np.array([longest.get(k, -1) for k in range(mapping.n_labels)]),
     )  # fmt: skip
     assert sum(len(set(tf[phys == m])) > 1 for m in np.unique(phys[phys >= 0])) >= 4  # really wrong now
-    _, fixed = jaxskel.confirm_merges(trial, wrong, result)
+    _, fixed = jaxskel.relabel.confirm_merges(trial, wrong, result)
     info = fixed.diagnostics["skeleton"]
     assert info["applied"] and info["links_added"] >= 4 and info["fragments_moved"] >= 4
     assert (~fixed.link_confirmed).sum() >= 4  # the corrections are reported as such
@@ -115,7 +115,7 @@ def test_skeleton_corrects_wrong_merges(fitted_relabelled_body):
         return sum(len(set(tf[fragment_physical == m])) > 1 for m in np.unique(fragment_physical[fragment_physical >= 0]))
 
     # The answer does not depend on the links it was given: the same as from the good mapping.
-    _, from_good = jaxskel.confirm_merges(trial, mapping, result)
+    _, from_good = jaxskel.relabel.confirm_merges(trial, mapping, result)
     assert partition(range(mapping.n_fragments), fixed.fragment_physical) == partition(
         range(mapping.n_fragments), from_good.fragment_physical
     )
@@ -132,12 +132,12 @@ def test_unexplained_skeleton_leaves_merges_alone(fitted_relabelled_body):
         segment_observed=motion.segment_observed,
     )  # fmt: skip
     with pytest.warns(jaxskel.DegenerateMotionWarning, match="explains only"):
-        merged, same = jaxskel.confirm_merges(
+        merged, same = jaxskel.relabel.confirm_merges(
             trial, mapping, types.SimpleNamespace(motion=still, skeleton=result.skeleton, trial=result.trial)
         )
     assert not same.diagnostics["skeleton"]["applied"]
     np.testing.assert_array_equal(same.physical, mapping.physical)
-    reference, _ = jaxskel.merge_labels(trial)
+    reference, _ = jaxskel.relabel.merge_labels(trial)
     np.testing.assert_array_equal(merged.positions, reference.positions)
     assert merged.labels == reference.labels
 
@@ -177,12 +177,12 @@ def test_fragment_offsets_match_brute_force():
 def test_bad_arguments(fitted_relabelled_body):
     trial, _, mapping, result = fitted_relabelled_body
     with pytest.raises(jaxskel.InputError, match="labels differ"):
-        jaxskel.confirm_merges(trial.select_markers(list(range(5))), mapping, result)
+        jaxskel.relabel.confirm_merges(trial.select_markers(list(range(5))), mapping, result)
     with pytest.raises(jaxskel.InputError, match="same frames"):
         short = types.SimpleNamespace(rotations=result.motion.rotations[:10])
-        jaxskel.confirm_merges(trial, mapping, dataclasses.replace(result, motion=short))
+        jaxskel.relabel.confirm_merges(trial, mapping, dataclasses.replace(result, motion=short))
     with pytest.raises(jaxskel.InputError, match="inverse kinematics"):
-        jaxskel.confirm_merges(trial, mapping, dataclasses.replace(result, motion=None))
+        jaxskel.relabel.confirm_merges(trial, mapping, dataclasses.replace(result, motion=None))
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/data/real")
@@ -195,11 +195,11 @@ def test_real_relabelled_recording_is_improved_by_the_skeleton():
     for k in range(runs.label.size):
         pos[runs.start[k] : runs.stop[k], k] = trial.positions[runs.start[k] : runs.stop[k], runs.label[k]]
     raw = trial.replace(positions=pos, labels=tuple(f"*{k}" for k in range(runs.label.size)))
-    merged, mapping = jaxskel.merge_labels(raw)
+    merged, mapping = jaxskel.relabel.merge_labels(raw)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
         fit = jaxskel.fit_skeleton(merged, merge_labels=False)
-    _, confirmed = jaxskel.confirm_merges(raw, mapping, fit)
+    _, confirmed = jaxskel.relabel.confirm_merges(raw, mapping, fit)
     before = label_accuracy(mapping.physical, runs.label)
     after = label_accuracy(confirmed.physical, runs.label)
     print(f"PronetoRun01 relabelled: labels right {100 * before:.1f} % -> {100 * after:.1f} %")
@@ -216,7 +216,7 @@ def test_fit_skeleton_confirms_merges_and_refits(fitted_relabelled_body):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
         result = jaxskel.fit_skeleton(trial, clean_data=False, merge_labels=True)
-    _, expected = jaxskel.confirm_merges(trial, mapping, first)
+    _, expected = jaxskel.relabel.confirm_merges(trial, mapping, first)
     got = result.label_mapping
     assert got.diagnostics["skeleton"]["applied"] and "confirm merges" in result.timings
     assert partition(range(got.n_fragments), got.fragment_physical) == partition(

@@ -35,7 +35,7 @@ def test_distance_std_matches_numpy_and_masks():
 
 def test_linkage_three_groups_by_eigengap():
     trial, truth = synth.simulate(synth.linkage(), duration=30.0, seed=0, noise=0.001)
-    seg = jaxskel.segment_markers(trial)
+    seg = jaxskel.segment.segment_markers(trial)
     assert seg.n_segments == 3 == seg.eigengap_segments
     assert partition(trial.labels, seg.marker_segment) == true_partition(trial, truth)
 
@@ -53,8 +53,8 @@ def test_full_body_exact_segmentation_noise_soft_tissue_gaps(seed):
     trial, truth = synth.simulate(
         body, duration=30.0, seed=seed, noise=0.002, soft_tissue=0.003, gaps=2
     )
-    cleaned, _ = jaxskel.clean(trial)
-    seg = jaxskel.segment_markers(cleaned)
+    cleaned, _ = jaxskel.clean.clean(trial)
+    seg = jaxskel.segment.segment_markers(cleaned)
     n_true = len(truth.segment_names)
     assert seg.eigengap_segments == n_true
     artefact = marker_artefact(0.002, 0.003)
@@ -93,8 +93,8 @@ def test_high_white_noise_does_not_merge_segments(seed):
     the same terms: no group of the exact grouping is above it."""
     body = synth.full_body(seed=seed)
     trial, truth = synth.simulate(body, duration=30.0, seed=seed, noise=0.004, soft_tissue=0.002, gaps=2)
-    cleaned, _ = jaxskel.clean(trial)
-    seg = jaxskel.segment_markers(cleaned)
+    cleaned, _ = jaxskel.clean.clean(trial)
+    seg = jaxskel.segment.segment_markers(cleaned)
     assert seg.white_noise == pytest.approx(0.004, rel=0.03)
     assert seg.n_segments == len(truth.segment_names)
     keep = [trial.labels.index(lab) for lab in cleaned.labels]
@@ -105,18 +105,18 @@ def test_high_white_noise_does_not_merge_segments(seed):
     assert seg.nonrigid_groups() == []
     # The scale the raw floor gave (11 mm) is what went wrong: given it, the eigengap
     # alone falls short of 15 on the same data.
-    assert jaxskel.segment_markers(cleaned, sigma=0.0113, rigid_ratio=None).n_segments < 15
+    assert jaxskel.segment.segment_markers(cleaned, sigma=0.0113, rigid_ratio=None).n_segments < 15
 
 
 def test_invariant_to_rigid_motion_and_marker_order():
     body = synth.full_body(seed=3)
     trial, truth = synth.simulate(body, duration=20.0, seed=3, noise=0.002)
-    ref = partition(trial.labels, jaxskel.segment_markers(trial).marker_segment)
+    ref = partition(trial.labels, jaxskel.segment.segment_markers(trial).marker_segment)
     moved = trial.transformed(random_rotation(7), np.array([3.0, -2.0, 0.5]))
-    assert partition(moved.labels, jaxskel.segment_markers(moved).marker_segment) == ref
+    assert partition(moved.labels, jaxskel.segment.segment_markers(moved).marker_segment) == ref
     perm = np.random.default_rng(1).permutation(trial.n_markers)
     shuffled = trial.select_markers(perm)
-    assert partition(shuffled.labels, jaxskel.segment_markers(shuffled).marker_segment) == ref
+    assert partition(shuffled.labels, jaxskel.segment.segment_markers(shuffled).marker_segment) == ref
 
 
 def test_pairs_never_seen_together_are_unobserved_not_rigid():
@@ -126,7 +126,7 @@ def test_pairs_never_seen_together_are_unobserved_not_rigid():
     x[:half, 0] = np.nan
     x[half:, 8] = np.nan
     t2 = trial.replace(positions=x)
-    seg = jaxskel.segment_markers(t2, 3)
+    seg = jaxskel.segment.segment_markers(t2, 3)
     assert (0, 8) in seg.unobserved_pairs
     assert np.isnan(seg.distance_std[0, 8])
     assert seg.affinity[0, 8] < 1e-6
@@ -199,7 +199,7 @@ def test_sixteen_segment_tree_marker_near_a_joint_lands_on_its_segment():
     reading moves it back, and the segmentation is the truth."""
     body = synth.random_tree(16, seed=1)
     trial, truth = synth.simulate(body, duration=20.0, seed=1, noise=0.001, gaps=2)
-    seg = jaxskel.segment_markers(trial)
+    seg = jaxskel.segment.segment_markers(trial)
     true_seg = truth.marker_segment[[trial.labels.index(lab) for lab in seg.labels]]
     assert partition(seg.labels, seg.marker_segment) == partition(seg.labels, true_seg)
 
@@ -210,10 +210,10 @@ def test_count_grows_from_the_eigengap_until_every_group_is_rigid():
     (the paper's count), each holding markers whose distance varies by > 3 sigma. The
     count grows to the first at which every group is rigid: 10, the exact segmentation."""
     trial, truth = synth.simulate(synth.random_tree(10, seed=2), duration=30.0, seed=2, noise=0.001)
-    paper = jaxskel.segment_markers(trial, rigid_ratio=None)
+    paper = jaxskel.segment.segment_markers(trial, rigid_ratio=None)
     assert paper.n_segments == paper.eigengap_segments == 8 and paper.count_rule == "eigengap"
     assert len(paper.nonrigid_groups()) == 0  # no limit without the check
-    seg = jaxskel.segment_markers(trial)
+    seg = jaxskel.segment.segment_markers(trial)
     assert seg.eigengap_segments == 8 and seg.count_rule == "rigid" and seg.n_segments == 10
     assert partition(trial.labels, seg.marker_segment) == true_partition(trial, truth)
     assert seg.rigid_limit == pytest.approx(np.hypot(3.0 * seg.sigma, np.sqrt(2) * seg.white_noise))
@@ -225,7 +225,7 @@ def test_count_grows_from_the_eigengap_until_every_group_is_rigid():
     for _, first, second, _ in named:
         assert truth.marker_segment[trial.labels.index(first)] != truth.marker_segment[trial.labels.index(second)]
     # a count given by the user is kept as given
-    given = jaxskel.segment_markers(trial, 8)
+    given = jaxskel.segment.segment_markers(trial, 8)
     assert given.n_segments == 8 and given.count_rule == "given"
 
 
@@ -233,16 +233,16 @@ def test_a_rigid_count_that_leaves_a_marker_alone_is_reported_not_taken():
     """The first count whose groups are all rigid (4) leaves a marker alone: the eigengap's
     3 is kept, its non-rigid group named, and 4 is reported as the count to compare."""
     trial = linkage_with_a_bending_marker()
-    seg = jaxskel.segment_markers(trial, sigma=0.006)
+    seg = jaxskel.segment.segment_markers(trial, sigma=0.006)
     assert (seg.count_rule, seg.eigengap_segments, seg.n_segments, seg.rigid_count) == ("eigengap", 3, 3, 4)
     ((_, first, second, std),) = seg.nonrigid_groups()
     assert {first, second} == {"R3M1", "R3M3"}
     assert std > seg.rigid_limit == pytest.approx(np.hypot(0.018, np.sqrt(2) * seg.white_noise))
-    four = jaxskel.segment_markers(trial, 4, sigma=0.006)
+    four = jaxskel.segment.segment_markers(trial, 4, sigma=0.006)
     assert four.nonrigid_groups() == [] and 1 in four.segment_sizes
     # nothing to report where the count is given, or the check is off
-    assert jaxskel.segment_markers(trial, 3, sigma=0.006).rigid_count == 0
-    assert jaxskel.segment_markers(trial, sigma=0.006, rigid_ratio=None).rigid_count == 0
+    assert jaxskel.segment.segment_markers(trial, 3, sigma=0.006).rigid_count == 0
+    assert jaxskel.segment.segment_markers(trial, sigma=0.006, rigid_ratio=None).rigid_count == 0
 
 
 def test_count_candidates_stay_within_the_eigengap_search():
@@ -251,7 +251,7 @@ def test_count_candidates_stay_within_the_eigengap_search():
     eigenvalues, and k = max_segments + 1 must not be listed)."""
     trial, _ = synth.simulate(synth.random_tree(4, seed=0), duration=20.0, seed=0, noise=0.001)
     for max_segments in (trial.n_markers - 2, trial.n_markers - 4, 5):
-        seg = jaxskel.segment_markers(trial, max_segments=max_segments, rigid_ratio=None)
+        seg = jaxskel.segment.segment_markers(trial, max_segments=max_segments, rigid_ratio=None)
         ks = [k for k, _ in seg.count_candidates(n=50)]
         assert ks[0] == seg.eigengap_segments
         assert sorted(ks) == list(range(2, max_segments + 1)), (max_segments, ks)
@@ -260,12 +260,12 @@ def test_count_candidates_stay_within_the_eigengap_search():
 def test_bad_segment_counts():
     trial, _ = synth.simulate(synth.linkage(), duration=5.0, seed=0)
     with pytest.raises(jaxskel.InputError, match="n_segments"):
-        jaxskel.segment_markers(trial, 0)
+        jaxskel.segment.segment_markers(trial, 0)
     with pytest.raises(jaxskel.InputError, match="n_segments"):
-        jaxskel.segment_markers(trial, 10)
+        jaxskel.segment.segment_markers(trial, 10)
     for bad in (0.0, -1.0, "3"):
         with pytest.raises(jaxskel.InputError, match="rigid_ratio"):
-            jaxskel.segment_markers(trial, rigid_ratio=bad)
+            jaxskel.segment.segment_markers(trial, rigid_ratio=bad)
 
 
 def _standing_still(seconds=6.0, noise=0.002):
@@ -283,19 +283,19 @@ def test_a_recording_that_moves_no_joint_is_one_segment_and_the_fit_says_why(tmp
     with only a forest warning; now the count is 1 and the fit raises a typed error that
     says the recording exercises no joint. Moving, the same body is 15 segments."""
     still = _standing_still()
-    seg = jaxskel.segment_markers(still)
+    seg = jaxskel.segment.segment_markers(still)
     assert (seg.n_segments, seg.count_rule) == (1, "rigid")
     assert np.nanmax(seg.distance_std) <= seg.rigid_limit
     with pytest.raises(jaxskel.DegenerateMotionError, match="one rigid body.*exercises no joint"):
         jaxskel.fit_skeleton(still)
     # the paper's eigengap alone still splits it, and no pair can then be jointed: said so
-    assert jaxskel.segment_markers(still, rigid_ratio=None).n_segments >= 2
+    assert jaxskel.segment.segment_markers(still, rigid_ratio=None).n_segments >= 2
     with pytest.raises(jaxskel.DegenerateMotionError, match="can be jointed.*not exercised"):
         jaxskel.fit_skeleton(still, segment_kwargs={"rigid_ratio": None})
     # a given count is the user's: kept
-    assert jaxskel.segment_markers(still, 3).n_segments == 3
+    assert jaxskel.segment.segment_markers(still, 3).n_segments == 3
     moving, _ = synth.simulate(synth.full_body(seed=0), duration=6.0, seed=0, noise=0.002)
-    assert jaxskel.segment_markers(moving).n_segments == 15
+    assert jaxskel.segment.segment_markers(moving).n_segments == 15
     # the command line: one line on stderr, exit status 2, no result file
     from jaxskel.cli import main
 

@@ -10,7 +10,7 @@ from soft_tissue_floor import fitted_errors, floor_skeleton
 import jaxskel
 from jaxskel import synth
 from jaxskel.joints._attachments import attachment_tree
-from jaxskel.pipeline._fit import _pose_exchange_text
+from jaxskel.result._summary import pose_exchange_text as _pose_exchange_text
 from jaxskel.joints._near_ties import rival_edges, runner_up
 from jaxskel.joints._pose_check import PoseExchange
 from jaxskel.result._summary import tree_lines
@@ -202,7 +202,7 @@ def test_full_body_tree_has_no_near_ties_and_every_rival_costs_more(body_fit):
     rival the poses reject (a fixed-centre misfit over twice the joint's)."""
     trial, truth, result = body_fit
     assert result.near_ties() == []
-    everything = jaxskel.near_ties(result.trial, result.segmentation, result.topology, z=1e9)
+    everything = jaxskel.joints.near_ties(result.trial, result.segmentation, result.topology, z=1e9)
     reported = [t.joint for t in everything]
     assert reported == sorted(reported) and len(reported) >= 1
     misfit = result.topology.fixed_misfit
@@ -211,7 +211,7 @@ def test_full_body_tree_has_no_near_ties_and_every_rival_costs_more(body_fit):
         rejected = misfit[rival] > 2.0 * misfit[tuple(edge)]
         assert (j in reported) != rejected, (j, edge, rival)
     assert all(t.margin >= 0 and t.rival_cost >= t.cost for t in everything)
-    assert jaxskel.near_ties(result.trial, result.segmentation, result.topology, z=0.0) == []
+    assert jaxskel.joints.near_ties(result.trial, result.segmentation, result.topology, z=0.0) == []
     assert "near tie" not in result.summary()
 
 
@@ -264,7 +264,7 @@ def test_full_body_calibration_determines_every_joint_and_bounds_every_bone(body
     assert result.undetermined_joints() == [] and "undetermined" not in result.summary()
     joint_of = {j: true_joint_index(result, trial, truth, j) for j in range(len(result.edges))}
     true_length = {frozenset(map(int, b)): length for b, length in zip(truth.bones, truth.bone_lengths)}
-    bound = jaxskel.bone_uncertainty(result.skeleton)
+    bound = jaxskel.joints.bone_uncertainty(result.skeleton)
     assert np.isfinite(bound).all() and bound.max() < 0.06, bound
     for (a, b), length, u in zip(result.skeleton.bones, result.skeleton.bone_lengths, bound):
         error = abs(length - true_length[frozenset((joint_of[int(a)], joint_of[int(b)]))])
@@ -460,7 +460,7 @@ def test_lone_hand_marker_next_to_a_two_marker_forearm_is_its_attachment(tmp_pat
     loaded = jaxskel.load_result(tmp_path / "r.h5")
     assert loaded.topology.untested.shape == (0, 3)
     with pytest.raises(jaxskel.InputError, match="result.untested_joints"):
-        jaxskel.untested_joints(result, result.topology)
+        jaxskel.joints.untested_joints(result, result.topology)
     # With two markers on each hand no segment is an attachment
     dense = synth.full_body(seed=0, markers_per_segment={"l_forearm": 2, "r_forearm": 2})
     trial, _ = synth.simulate(dense, duration=20.0, seed=0, noise=0.002, soft_tissue=0.003, gaps=1)
@@ -558,4 +558,4 @@ def test_a_walk_alone_names_the_joints_it_cannot_place():
     assert "undetermined (joints " in width and all(result.joint_name(j) in width for j in hips)
     true_hips = [truth.joint_names.index(f"{side}_hip") for side in "lr"]
     true_width = np.linalg.norm(np.subtract(*truth.joint_positions[0, true_hips]))
-    assert abs(result.skeleton.bone_lengths[b] - true_width) < jaxskel.bone_uncertainty(result.skeleton)[b]
+    assert abs(result.skeleton.bone_lengths[b] - true_width) < jaxskel.joints.bone_uncertainty(result.skeleton)[b]

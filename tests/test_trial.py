@@ -88,7 +88,7 @@ def test_arrays_have_no_nan_and_padding_keeps_data():
     x, mask = t.to_arrays()
     assert np.isfinite(x).all() and (x[~mask] == 0).all()
     xp, mp = t.padded()
-    assert xp.shape == (jaxskel.bucket_size(10), 8, 3)
+    assert xp.shape == (jaxskel._math.padding.bucket_size(10), 8, 3)
     np.testing.assert_array_equal(xp[:10, :4], x)
     assert mp[:10, :4].sum() == mask.sum() and mp.sum() == mask.sum()
     with pytest.raises(InputError):
@@ -118,6 +118,6 @@ def test_to_up_axis_preserves_distances():
 
 
 def test_bucket_sizes_are_few_and_sufficient():
-    sizes = {jaxskel.bucket_size(n) for n in range(1, 5000)}
-    assert all(jaxskel.bucket_size(n) >= n for n in range(1, 5000))
+    sizes = {jaxskel._math.padding.bucket_size(n) for n in range(1, 5000)}
+    assert all(jaxskel._math.padding.bucket_size(n) >= n for n in range(1, 5000))
     assert len(sizes) <= 2 * 9 + 1  # two per octave from 16 to 8192

@@ -13,7 +13,6 @@ All functions are pure, jit/vmap/grad-able, and follow the dtype of their input.
 
 from __future__ import annotations
 
-
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 

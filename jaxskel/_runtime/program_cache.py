@@ -40,8 +40,8 @@ from typing import Any, Callable
 
 import jax
 
-from ..io._atomic import atomic_output
 from .._errors import InputError
+from ..io import atomic_output
 
 __all__ = ["call", "set_directory"]
 

@@ -41,7 +41,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .._errors import InputError
-from ..io._trial import Trial
+from ..io import Trial
 
 __all__ = ["clean", "CleaningReport", "contiguous_runs", "find_duplicates"]
 

@@ -46,10 +46,10 @@ import numpy as np
 from jaxtyping import Bool, Float
 from scipy.signal import butter, filtfilt
 
-from ._clean import contiguous_runs
 from .._errors import InputError
-from ..segment._spectral import white_noise
-from ..io._trial import Trial
+from ..io import Trial
+from ..segment import white_noise
+from ._clean import contiguous_runs
 
 __all__ = ["Lowpassed", "check_cutoff", "lowpass_markers"]
 

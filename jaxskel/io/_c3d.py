@@ -23,8 +23,8 @@ from pathlib import Path
 import ezc3d
 import numpy as np
 
-from ._atomic import atomic_output
 from .._errors import InputError
+from ._atomic import atomic_output
 from ._load import RawRecording, resolve_units, zeros_to_nan
 from ._trial import Trial
 

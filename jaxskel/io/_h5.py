@@ -27,8 +27,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ._atomic import atomic_output
 from .._errors import InputError, SchemaError
+from ._atomic import atomic_output
 from ._load import RawRecording, Units
 from ._trial import UP_AXES, Trial
 

@@ -41,7 +41,7 @@ from jaxtyping import Float
 from .._errors import InputError, UnitsWarning
 from ._trial import UP_AXES, Trial
 
-__all__ = ["load", "save_trial", "infer_up_axis"]
+__all__ = ["load", "save_trial", "infer_up_axis", "median_extent"]
 
 #: Suffix -> format module. Suffixes are compared in lower case.
 _READERS = {".c3d": "c3d", ".trc": "trc", ".csv": "csv", ".h5": "h5", ".hdf5": "h5"}
@@ -358,7 +358,7 @@ def resolve_units(stated: str | None, override: str | None, raw: np.ndarray, fil
         return Units(unit_scale(override, file), str(override).strip(), "argument")
     if stated is not None and stated.strip():
         return Units(unit_scale(stated, file), stated.strip(), "file")
-    extent = _median_extent(raw)
+    extent = median_extent(raw)
     if extent is not None and extent < 5.0:
         name = "m"
         why = f"its markers span only {extent:.3g} units per frame, so they must be metres"
@@ -372,7 +372,7 @@ def resolve_units(stated: str | None, override: str | None, raw: np.ndarray, fil
     return Units(UNIT_SCALES[name], name, "assumed", note)
 
 
-def _median_extent(raw: np.ndarray) -> float | None:
+def median_extent(raw: np.ndarray) -> float | None:
     """Median over frames of the largest per-axis range of the present markers."""
     present = ~np.isnan(raw).any(axis=-1) & ~(raw == 0).all(axis=-1)
     framed = present.sum(axis=1) >= 2

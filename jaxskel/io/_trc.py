@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._atomic import atomic_output
 from .._errors import InputError
+from ._atomic import atomic_output
 from ._load import RawRecording, parse_table, read_text, resolve_units, zeros_to_nan
 from ._trial import Trial
 

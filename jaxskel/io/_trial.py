@@ -263,7 +263,7 @@ class Trial:
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(x, mask)`` padded with absent samples to (n_frames, n_markers).
 
-        By default both sizes are rounded up by :func:`jaxskel.bucket_size`, so
+        By default both sizes are rounded up by :func:`jaxskel._math.padding.bucket_size`, so
         recordings of similar size share one compiled shape.
         """
         f = bucket_size(self.n_frames) if n_frames is None else int(n_frames)

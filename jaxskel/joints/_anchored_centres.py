@@ -67,10 +67,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .._runtime import program_cache as _program_cache
-from .._runtime.backend import uses_cpu
 from .._math.padding import bucket_size
 from .._math.procrustes import align_to_reference, procrustes
+from .._runtime import program_cache as _program_cache
+from .._runtime.backend import uses_cpu
 
 __all__ = ["AnchoredCentres", "anchored_centres"]
 
@@ -288,7 +288,7 @@ def anchored_centres(
 ) -> AnchoredCentres:
     """Refit each joint with its centre fixed in one segment's frame (module docstring).
 
-    ``joint_positions`` are the per-frame centres of :func:`jaxskel.fit_topology` (the
+    ``joint_positions`` are the per-frame centres of :func:`jaxskel.joints.fit_topology` (the
     starting point, and what is kept along directions the refit does not resolve). At
     most ``max_frames`` posed frames, evenly spaced, enter each fit.
     """

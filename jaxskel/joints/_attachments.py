@@ -14,7 +14,7 @@ The tree is therefore built in two layers:
    or more markers it is most rigid with, by the median over that segment's markers of
    the distance standard deviation ``A`` of segmentation (the statistic the segments
    were grouped by). It is a leaf of its host. Where the host has two markers the pair
-   has three, too few for a joint cost (:func:`jaxskel.joint_costs`): the joint is then
+   has three, too few for a joint cost (:func:`jaxskel.joints.joint_costs`): the joint is then
    solved with the distance prior alone (it places the centre near the markers, and
    the fit reports it undetermined), which keeps the tree right (a lone hand marker on
    its two-marker forearm, not on the upper arm a cost can be computed with).

@@ -102,8 +102,8 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
-from ._cost_lm import PairProblem, block_solve, inv3, levenberg_marquardt
 from .._math.linalg import generalised_eigvalsh
+from ._cost_lm import PairProblem, block_solve, inv3, levenberg_marquardt
 
 __all__ = ["JointSolution", "solve_joint", "solve_joints"]
 
@@ -511,7 +511,7 @@ def solve_joints(
 
     The batched core used by the topology pass: any leading axes (pairs, trials) are
     flattened and solved by one vmapped, jit-compiled solver, so shapes should be
-    padded to bucket sizes (:func:`jaxskel.bucket_size`) by the caller; padded frames,
+    padded to bucket sizes (:func:`jaxskel._math.padding.bucket_size`) by the caller; padded frames,
     markers and whole pairs are simply masked out (a fully masked pair returns cost 0,
     no valid frames, ``converged`` True, and never NaN). Every pair iterates until the
     slowest converges, so cap ``max_steps`` for approximate all-pairs costs.

@@ -58,8 +58,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._cost_lm import inv3
 from .._math.linalg import eigh, eigvalsh, spd_solve
+from ._cost_lm import inv3
 
 __all__ = ["algebraic_start", "consistency_start"]
 

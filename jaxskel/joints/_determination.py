@@ -90,7 +90,7 @@ class UndeterminedJoint(NamedTuple):
 
 
 def _require_skeleton(skeleton: Any, caller: str) -> None:
-    """Raise :class:`InputError` unless ``skeleton`` looks like a :class:`jaxskel.Skeleton`
+    """Raise :class:`InputError` unless ``skeleton`` looks like a :class:`jaxskel.skeleton.Skeleton`
     (the fields read here: ``diagnostics``, ``n_joints``, ``bones``)."""
     if not all(hasattr(skeleton, name) for name in ("diagnostics", "n_joints", "bones")):
         raise InputError(
@@ -122,8 +122,8 @@ def joint_resolution(skeleton: Any) -> np.ndarray:
     """(J,) metres: the largest resolution of each joint's centre that nothing else fixes
     (module docstring); NaN for a joint with no fixed-centre fit.
 
-    ``skeleton`` is a :class:`jaxskel.Skeleton` fitted by :func:`jaxskel.fit_skeleton`
-    (its ``diagnostics["anchored"]``); one from :func:`jaxskel.fit_rigid` alone has no
+    ``skeleton`` is a :class:`jaxskel.skeleton.Skeleton` fitted by :func:`jaxskel.fit_skeleton`
+    (its ``diagnostics["anchored"]``); one from :func:`jaxskel.skeleton.fit_rigid` alone has no
     fixed-centre fit, and every joint reads NaN.
     """
     _require_skeleton(skeleton, "joint_resolution")

@@ -40,16 +40,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import ConvergenceWarning, DegenerateMotionError, InputError
-from ._cost import _settings, _solve_batch
-from ._cost_init import algebraic_start, consistency_start_batched
+from .._math.padding import bucket_size
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import uses_cpu
-from .._math.padding import bucket_size
-from ..segment._spectral import Segmentation
+from ..io import Trial
+from ..segment import Segmentation
 from ._attachments import Attachment, attachment_tree
-from ._pose_check import PoseExchange, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
+from ._cost import _settings, _solve_batch
+from ._cost_init import algebraic_start, consistency_start_batched
+from ._pose_check import (
+    PoseExchange,
+    fixed_centre_misfit,
+    pose_checked_edges,
+    segment_poses,
+    sphere_misfit,
+)
 from ._tree import root_tree, tree_path
-from ..io._trial import Trial
 
 __all__ = [
     "PairCosts", "Topology", "UntestedJoint", "joint_costs", "fit_topology", "pair_arrays", "solve_chunked",
@@ -185,10 +191,10 @@ class Topology:
         (S, S) fixed-centre misfit of every pair of posed segments (m^2, ``inf`` where
         either has fewer than three markers); see :mod:`jaxskel.joints._pose_check`.
     pose_exchanges
-        MST edges the pose check replaced (:class:`jaxskel.PoseExchange`).
+        MST edges the pose check replaced (:class:`jaxskel.joints.PoseExchange`).
     attachments
         One-marker segments hung as leaves from their most rigid segment
-        (:class:`jaxskel.Attachment`, :mod:`jaxskel.joints._attachments`).
+        (:class:`jaxskel.joints.Attachment`, :mod:`jaxskel.joints._attachments`).
     """
 
     edges: np.ndarray
@@ -269,10 +275,10 @@ def solve_chunked(
     now (docs/design.md), and on a CPU a second execution has no spare core anyway.
 
     ``rtol``/``atol``: the solver's stopping tolerances (``None``: its defaults for the
-    dtype, :func:`jaxskel.solve_joints`). They are traced, so changing them does not
+    dtype, :func:`jaxskel.joints.solve_joints`). They are traced, so changing them does not
     recompile the LM solver.
 
-    Returns the :class:`jaxskel.JointSolution` fields as numpy arrays with P rows.
+    Returns the :class:`jaxskel.joints.JointSolution` fields as numpy arrays with P rows.
     """
     n = len(xs)
     settings, controls = _settings(method, max_steps, rtol, atol, xs.dtype)
@@ -852,7 +858,7 @@ def untested_joints(segmentation: Segmentation, topology: Topology) -> list[Unte
     """
     if not isinstance(segmentation, Segmentation) or not isinstance(topology, Topology):
         raise InputError(
-            "untested_joints(segmentation, topology) takes a jaxskel.Segmentation and a jaxskel.Topology "
+            "untested_joints(segmentation, topology) takes a jaxskel.segment.Segmentation and a jaxskel.joints.Topology "
             f"(got {type(segmentation).__name__}, {type(topology).__name__}); for a fit, call "
             "result.untested_joints()"
         )

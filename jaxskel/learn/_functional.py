@@ -37,8 +37,16 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import InputError
 from .._math.geometry import horn_align
-from ..skeleton._ik import DEFAULT_PRIOR_WEIGHT, FrameSolution, IKModel, ik_initial_guess, ik_solve, kinematic_chain, tree_levels
-from ..joints._cost import JointSolution, solve_joints
+from ..joints import JointSolution, solve_joints
+from ..skeleton import (
+    DEFAULT_PRIOR_WEIGHT,
+    FrameSolution,
+    IKModel,
+    ik_initial_guess,
+    ik_solve,
+    kinematic_chain,
+    tree_levels,
+)
 
 __all__ = ["SkeletonStructure", "RigidFit", "joint_cost_fn", "rigid_fit_fn", "ik_fn"]
 
@@ -57,7 +65,7 @@ class SkeletonStructure(eqx.Module):
         Root segment (the one that is never a child).
 
     Build it with ``SkeletonStructure(edges, marker_segment)`` or
-    :meth:`from_result` (a :class:`jaxskel.SkeletonResult` or :class:`jaxskel.Skeleton`).
+    :meth:`from_result` (a :class:`jaxskel.SkeletonResult` or :class:`jaxskel.skeleton.Skeleton`).
     """
 
     edges: tuple[tuple[int, int], ...] = eqx.field(static=True)
@@ -77,7 +85,7 @@ class SkeletonStructure(eqx.Module):
 
     @classmethod
     def from_result(cls, result: Any) -> SkeletonStructure:
-        """From a :class:`jaxskel.SkeletonResult` (its rigid skeleton) or a :class:`jaxskel.Skeleton`."""
+        """From a :class:`jaxskel.SkeletonResult` (its rigid skeleton) or a :class:`jaxskel.skeleton.Skeleton`."""
         skeleton = getattr(result, "skeleton", result)
         if skeleton is None or not hasattr(skeleton, "marker_segment"):
             raise InputError("the result has no rigid skeleton (fit with rigid=True)")
@@ -149,7 +157,7 @@ def joint_cost_fn(
     frames where marker k is present (``mask``). ``markers`` (..., F, K, 3) holds the
     markers of both segments; leading axes are solved together (one vmapped solve).
 
-    Returns a :class:`jaxskel.JointSolution`: ``positions`` (..., F, 3) the joint per
+    Returns a :class:`jaxskel.joints.JointSolution`: ``positions`` (..., F, 3) the joint per
     frame, ``radii`` (..., K), ``cost`` (...) = Q at the optimum (m^2), plus solver
     diagnostics. ``jax.grad`` of ``cost``, ``positions`` or ``radii`` with respect to
     ``markers`` and ``alpha`` is the implicit derivative at the optimum, as exact as the
@@ -360,7 +368,7 @@ def ik_fn(
     Per frame, minimises ``sum_m w_m |FK(t, q)_m - x_m|^2`` plus a weak pose prior
     (``prior_weight`` metres per radian, toward the starting pose) over the root
     translation t and the segment quaternions q (w, x, y, z), frames in parallel
-    (vmapped :func:`jaxskel.ik_solve`). The start is a root-down Horn alignment of each
+    (vmapped :func:`jaxskel.skeleton.ik_solve`). The start is a root-down Horn alignment of each
     segment (:func:`jaxskel.skeleton._ik.ik_initial_guess`) unless ``init_*`` are given.
 
     Returns a :class:`jaxskel.skeleton._ik.FrameSolution` with leading axis F:

@@ -53,20 +53,20 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from .._errors import InputError, JaxskelError
+from .._runtime.map_limit import near_map_limit, release_programs_near_map_limit
+from ..clean import check_cutoff
+from ..io import Trial
 from ._batch_io import (
     BoneSpec,
     _normalise_specs,
+    completion_record,
     failed_row,
     finished_row,
-    completion_record,
     signature,
     summary_row,
     write_summary,
 )
-from .._errors import InputError, JaxskelError
-from ..clean._lowpass import check_cutoff
-from .._runtime.map_limit import near_map_limit, release_programs_near_map_limit
-from ..io._trial import Trial
 
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
 
@@ -215,7 +215,7 @@ class TrialOutcome:
 
     def load(self) -> Any:
         """The result file read back (:func:`jaxskel.load_result`)."""
-        from ..result._format import load_result
+        from ..result import load_result
 
         if self.output is None:
             raise InputError(f"{self.name}: no result file (fit_batch ran without an output folder)")
@@ -287,9 +287,9 @@ class _Work:
 
 
 def _prepare(item: _Item, options: Mapping[str, Any]) -> _Work:
+    from ..io import load
+    from ..joints import all_pairs_problem
     from ._fit import prepare_fit
-    from ..io._load import load
-    from ..joints._topology import all_pairs_problem
 
     work = _Work(item, time.perf_counter())
     t0 = time.perf_counter()
@@ -326,7 +326,13 @@ def _shared(works: list[_Work], solve: Callable[[list[Any]], list[Any]], attr: s
 
 def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, fail: Callable) -> list[_Work]:
     """All-pairs costs, then tree joints, of several prepared trials together."""
-    from ..joints._topology import pair_costs_from, solve_pairs, solve_trees, topology_from, tree_problem
+    from ..joints import (
+        pair_costs_from,
+        solve_pairs,
+        solve_trees,
+        topology_from,
+        tree_problem,
+    )
 
     t0 = time.perf_counter()
     with DEVICE_LOCK:
@@ -372,7 +378,12 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
 
 def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
             keep: bool) -> TrialOutcome:
-    from ._fit import _confirm_merges_and_refit, add_motion, finish_fit, fit_joints_and_skeleton
+    from ._fit import (
+        _confirm_merges_and_refit,
+        add_motion,
+        finish_fit,
+        fit_joints_and_skeleton,
+    )
     from ._split_refit import fit_growing_count
 
     item, prep = work.item, work.prep
@@ -542,7 +553,7 @@ def fit_batch(
         its first folder (``DIR/subject/trial.c3d``); file stems for lists.
     bones
         Bone lengths to tabulate, ``{name: (A, S, B)}`` by marker labels or a list
-        of such triples to average (see :func:`jaxskel.plot_bone_lengths`); each
+        of such triples to average (see :func:`jaxskel.pipeline.plot_bone_lengths`); each
         becomes a ``bone:<name>`` column.
     batch_size
         Most trials solved together.
@@ -659,8 +670,8 @@ def fit_batch(
 
 def _refresh_bones(row: dict[str, Any], path: Path, specs: Mapping[str, BoneSpec]) -> None:
     """Bone columns of a skipped trial, from its result file (the specs may be new)."""
+    from ..result import load_result
     from ._batch_io import bone_length
-    from ..result._format import load_result
 
     try:
         result = load_result(path)

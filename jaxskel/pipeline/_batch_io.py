@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from ..io._atomic import atomic_output
 from .._errors import InputError
-from ..segment._names import names_from_markers
+from ..io import atomic_output
+from ..segment import names_from_markers
 
 __all__ = [
     "COLUMNS",

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from .._errors import InputError
-from ..io._trial import Trial
+from ..io import Trial
 
 __all__ = ["run_distributed"]
 
@@ -68,8 +68,8 @@ def _fit_group(
     batch_size: int,
 ) -> list[tuple[int, dict[str, Any], str]]:
     """Worker task: fit a group of trials in-process; return (index, row, output) per trial."""
-    from ._batch import _default_devices, _Item, run_local
     from .._runtime.compile_cache import enable_compile_cache
+    from ._batch import _default_devices, _Item, run_local
 
     enable_compile_cache()
     items = [

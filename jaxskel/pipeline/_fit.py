@@ -3,10 +3,10 @@
     Trial --clean--> --[merge labels]--> --segment--> --joint costs / MST / tree joints-->
           --rigid skeleton--> --inverse kinematics--> SkeletonResult
 
-Each stage is a public function too (:func:`jaxskel.clean`,
-:func:`jaxskel.merge_labels`, :func:`jaxskel.segment_markers`,
-:func:`jaxskel.fit_topology`, :func:`jaxskel.fit_rigid`,
-:func:`jaxskel.inverse_kinematics`); this module only sequences them, keeps
+Each stage is a public function too (:func:`jaxskel.clean.clean`,
+:func:`jaxskel.relabel.merge_labels`, :func:`jaxskel.segment.segment_markers`,
+:func:`jaxskel.joints.fit_topology`, :func:`jaxskel.skeleton.fit_rigid`,
+:func:`jaxskel.skeleton.inverse_kinematics`); this module only sequences them, keeps
 every stage's output and diagnostics, and reports progress.
 """
 
@@ -18,25 +18,34 @@ import functools
 import time
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..clean._clean import CleaningReport, clean
-from ..relabel._merge import needs_merging
 from .._errors import (
-    AmbiguousTreeWarning, DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning,
+    AmbiguousTreeWarning,
+    DegenerateMotionError,
+    DegenerateMotionWarning,
+    InputError,
+    NonRigidMarkerWarning,
 )
-from ..io._load import _median_extent
-from ..clean._lowpass import check_cutoff
 from .._runtime.map_limit import release_programs_near_map_limit
-from ..segment._names import segment_names as default_names
-from ..segment._spectral import Segmentation, combine_trials, segment_markers
+from ..clean import CleaningReport, check_cutoff, clean
+from ..io import Trial, median_extent
+from ..joints import Topology, fit_topology, joint_costs
+from ..relabel import needs_merging
+from ..result import (
+    SkeletonResult,
+    near_tie_text,
+    nonrigid_group_hint,
+    nonrigid_group_texts,
+    nonrigid_text,
+    undetermined_lines,
+    untested_text,
+)
+from ..segment import Segmentation, combine_trials, segment_markers
+from ..segment import segment_names as default_names
 from ._split_refit import fit_growing_count
-from ..result._summary import bone_bound, is_loose, resolution_cell, tree_lines, undetermined_lines
-from ..joints._topology import Topology, fit_topology, joint_costs
-from ..io._trial import Trial
 
 __all__ = ["SkeletonResult", "fit_skeleton", "check_units", "prepare_fit", "finish_fit", "PreparedFit"]
 
@@ -52,11 +61,11 @@ def check_units(trial: Trial) -> None:
 
     A human or a lab linkage spans centimetres to a few metres per frame. The
     median over frames of the body's span (the same measure the file readers use
-    to guess missing units, :func:`jaxskel.io._load._median_extent`) must lie in
+    to guess missing units, :func:`jaxskel.io.median_extent`) must lie in
     [2 cm, 40 m]; outside it the data are almost surely millimetres read as
     metres (or similar).
     """
-    extent = _median_extent(np.asarray(trial.positions))
+    extent = median_extent(np.asarray(trial.positions))
     name = trial.source or "trial"
     if extent is None:
         raise InputError(f"{name}: no frame has two markers present; there is nothing to fit")
@@ -72,331 +81,9 @@ def check_units(trial: Trial) -> None:
         )
 
 
-@dataclasses.dataclass(frozen=True)
-class SkeletonResult:
-    """Everything :func:`fit_skeleton` produced, stage by stage.
-
-    Attributes
-    ----------
-    input_labels
-        Marker labels of the input (after combining trials), as given.
-    trial
-        The cleaned (and label-merged) trial every later stage used.
-    cleaning
-        :class:`CleaningReport` (``None`` when cleaning was switched off).
-    label_mapping
-        Result of passive-marker merging, or ``None``.
-    segmentation, topology
-        Stage outputs (:class:`Segmentation`, :class:`Topology`).
-    skeleton, motion
-        Rigid skeleton and inverse-kinematics motion (``None`` when switched off).
-    segment_names
-        (S,) unique readable names, from the segments' marker labels unless given
-        (:mod:`jaxskel.segment._names`: ``RTH`` for ``RTHPA, RTHPP, RTHDP, RTHDA``,
-        ``LFWT+RFWT+LBWT+RBWT`` where the labels share no prefix). Display only: no stage
-        of the fit reads them. Joints are named ``parent-child`` from them.
-    trial_bounds
-        Frame range of each input trial in the combined recording.
-    timings
-        Seconds per stage.
-    settings
-        The arguments used.
-    """
-
-    input_labels: tuple[str, ...]
-    trial: Trial
-    cleaning: CleaningReport | None
-    label_mapping: Any
-    segmentation: Segmentation
-    topology: Topology
-    skeleton: Any
-    motion: Any
-    segment_names: tuple[str, ...]
-    trial_bounds: tuple[tuple[int, int], ...]
-    timings: dict[str, float]
-    settings: dict[str, Any]
-
-    # ------------------------------------------------------------- derived
-    @property
-    def n_segments(self) -> int:
-        return self.segmentation.n_segments
-
-    @property
-    def edges(self) -> np.ndarray:
-        return self.topology.edges
-
-    @property
-    def joint_positions(self) -> np.ndarray:
-        """(F, J, 3) joint centres per frame (row j <-> edge j)."""
-        return self.topology.joint_positions
-
-    def marker_segment_input(self) -> np.ndarray:
-        """Segment of every *input* marker (-1 if dropped by cleaning; a merged or duplicate
-        label has its physical marker's segment)."""
-        index = {lab: i for i, lab in enumerate(self.segmentation.labels)}
-        phys = self.physical_input()
-        out = np.full(len(self.input_labels), -1, dtype=int)
-        merged_labels = self.trial.labels
-        for i, lab in enumerate(self.input_labels):
-            target = merged_labels[phys[i]] if phys[i] >= 0 else None
-            if target is not None and target in index:
-                out[i] = self.segmentation.marker_segment[index[target]]
-        return out
-
-    def physical_input(self) -> np.ndarray:
-        """Physical-marker index (into ``trial.labels``) of every input label, -1 if none.
-
-        A duplicate label merged by cleaning maps to the marker it was merged into."""
-        index = {lab: i for i, lab in enumerate(self.trial.labels)}
-        copy_of = self.cleaning.duplicates if self.cleaning is not None else {}
-
-        def find(lab: str) -> int:
-            while lab not in index and lab in copy_of:
-                lab = copy_of[lab]
-            return index.get(lab, -1)
-
-        if self.label_mapping is not None:
-            # The mapping covers the labels that reached the merge; cleaning may have
-            # dropped others first (never seen, or a copy of another label).
-            merged = tuple(self.label_mapping.physical_labels)
-            via = {lab: (merged[p] if p >= 0 else None)
-                   for lab, p in zip(self.label_mapping.labels, np.asarray(self.label_mapping.physical).tolist())}
-
-            def find_merged(lab: str) -> int:
-                while lab not in via and lab in copy_of:
-                    lab = copy_of[lab]
-                target = via.get(lab)
-                return find(target) if target is not None else -1
-
-            return np.array([find_merged(lab) for lab in self.input_labels], dtype=int)
-        return np.array([find(lab) for lab in self.input_labels], dtype=int)
-
-    def bone_lengths(self) -> dict[str, float]:
-        """Distance between the two joints of every segment with two or more joints.
-
-        Taken from the rigid skeleton when it exists, else the median over frames
-        of the per-frame joint distances.
-        """
-        out: dict[str, float] = {}
-        if self.skeleton is not None:
-            for (j0, j1), length in zip(self.skeleton.bones, self.skeleton.bone_lengths):
-                out[self._bone_name(j0, j1)] = float(length)
-            return out
-        jp = self.joint_positions
-        edges = self.edges
-        for s in range(self.n_segments):
-            js = [j for j, (p, c) in enumerate(edges) if p == s or c == s]
-            for a in range(len(js)):
-                for b in range(a + 1, len(js)):
-                    d = np.linalg.norm(jp[:, js[a]] - jp[:, js[b]], axis=-1)
-                    if np.isfinite(d).any():
-                        out[self._bone_name(js[a], js[b])] = float(np.nanmedian(d))
-        return out
-
-    def _bone_name(self, j0: int, j1: int) -> str:
-        """``"B (A-C)"``: segment B between its joints with segments A and C."""
-        names = self.segment_names
-        e0, e1 = {int(v) for v in self.edges[j0]}, {int(v) for v in self.edges[j1]}
-        shared = (e0 & e1).pop()
-        return f"{names[shared]} ({names[(e0 - {shared}).pop()]}-{names[(e1 - {shared}).pop()]})"
-
-    def untested_joints(self) -> list:
-        """Sparsely marked segments whose likelier joint could not be tested
-        (:func:`jaxskel.untested_joints`)."""
-        from ..joints._topology import untested_joints
-
-        return untested_joints(self.segmentation, self.topology)
-
-    def undetermined_joints(self) -> list:
-        """Tree joints whose centre the recording fixes only to within more than 10 cm
-        (:func:`jaxskel.undetermined_joints`); empty without the rigid skeleton."""
-        from ..joints._determination import undetermined_joints
-
-        return undetermined_joints(self.skeleton) if self.skeleton is not None else []
-
-    def joint_resolutions(self) -> np.ndarray:
-        """(J,) metres: how far each joint centre can move along its least determined
-        direction before the fit's misfit doubles (:mod:`jaxskel.joints._determination`); NaN
-        where unknown (no segment of the joint with three markers, no rigid skeleton)."""
-        from ..joints._determination import joint_resolution
-
-        if self.skeleton is None:
-            return np.full(len(self.edges), np.nan)
-        return joint_resolution(self.skeleton)
-
-    def bone_uncertainties(self) -> dict[str, float]:
-        """How far each bone length of :meth:`bone_lengths` can move with its joints inside
-        their resolutions (metres, NaN where unknown; :func:`jaxskel.bone_uncertainty`).
-        Empty without the rigid skeleton."""
-        if self.skeleton is None:
-            return {}
-        from ..joints._determination import bone_uncertainty
-
-        spread = bone_uncertainty(self.skeleton)
-        return {self._bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
-
-    def near_ties(self, z: float = 2.0) -> list:
-        """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
-        the tree would joint instead (:func:`jaxskel.near_ties`)."""
-        from ..joints._near_ties import near_ties
-
-        return near_ties(self.trial, self.segmentation, self.topology, z=z)
-
-    def joint_name(self, j: int) -> str:
-        p, c = self.edges[j]
-        return f"{self.segment_names[p]}-{self.segment_names[c]}"
-
-    def summary(self) -> str:
-        """Segments with their markers, joints with their costs, how the tree was chosen and
-        its runner-up, bone lengths. A joint the recording fixes only to within more than
-        10 cm reads ``undetermined``, with the motion that would fix it, and so does the
-        bound of a bone ending at it (:mod:`jaxskel.result._summary`)."""
-        lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
-        seg = self.segmentation
-        gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
-        rule = {
-            "given": "given",
-            "eigengap": "eigengap",
-            "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
-            f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
-            "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
-            f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
-        }[seg.count_rule]
-        lines.append(
-            f"segment count: {rule}; largest eigengaps after k = {gaps}; "
-            f"white noise {1e3 * seg.white_noise:.2f} mm (taken out of A)"
-        )
-        groups = _nonrigid_group_texts(seg, self.segment_names)
-        if groups:
-            lines += [f"  {text}" for text in groups] + [f"  {_nonrigid_group_hint(seg)}"]
-        if self.cleaning is not None and self.cleaning.duplicates:
-            pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
-            lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
-        width = max(map(len, self.segment_names), default=0)
-        for name, group in zip(self.segment_names, self.segmentation.groups):
-            lines.append(f"  {name:>{width}}: {', '.join(group)}")
-        anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
-        resolution = self.joint_resolutions()
-        lines += self._joint_lines(anchored, resolution)
-        lines += tree_lines(self.topology, self.segment_names, self.settings, self.segmentation)
-        loose = [j for j in range(len(self.edges)) if is_loose(resolution[j])]
-        if loose:
-            lines += [f"  {line}" for line in undetermined_lines(loose, self.segment_names, self.skeleton)]
-        for u in self.untested_joints():
-            lines.append(_untested_text(u, self.segment_names, self.segmentation.segment_sizes))
-        for exchange in self.topology.pose_exchanges:
-            lines.append(f"  {_pose_exchange_text(exchange, self.segment_names)}")
-        for tie in self.near_ties():
-            lines.append(f"  {_near_tie_text(tie, self.segment_names)}")
-        nonrigid = _nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
-        if nonrigid is not None:
-            lines.append(f"  {nonrigid}")
-        lines += self._bone_lines(resolution)
-        if self.motion is not None:
-            rms = np.asarray(self.motion.marker_rms)
-            lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
-            cutoff = self.motion.lowpass_hz
-            if cutoff is not None:
-                done = cutoff[np.isfinite(cutoff)]
-                lines.append(
-                    f"IK markers low-passed at {np.min(done):.1f}-{np.max(done):.1f} Hz (median {np.median(done):.1f}), "
-                    f"{len(cutoff) - len(done)} of {len(cutoff)} as measured"
-                    if len(done) else f"IK markers as measured (no white noise to filter in any of {len(cutoff)})"
-                )
-        return "\n".join(lines)
-
-    __str__ = summary
-
-    def _joint_lines(self, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
-        """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
-        from ..joints._anchored_centres import MIN_EXERCISE_DEG
-
-        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
-        names = [self.joint_name(j) for j in range(len(self.edges))]
-        width = max(map(len, names), default=0)
-        t = self.topology
-        lines = ["joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
-        for j, name in enumerate(names):
-            lines.append(
-                f"  {name:>{width}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
-                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {resolution_cell(resolution[j])}"
-                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
-            )
-        return lines
-
-    def _bone_lines(self, resolution: np.ndarray) -> list[str]:
-        """The summary's bone table: lengths, and bounds where the rigid skeleton has them."""
-        bones = self.bone_lengths()
-        if not bones:
-            return []
-        if self.skeleton is None:
-            return ["bone lengths [m]:"] + [f"  {name}: {length:.4f}" for name, length in bones.items()]
-        from ..joints._determination import bone_uncertainty
-
-        loose = any(is_loose(resolution[j]) for j in np.ravel(self.skeleton.bones))
-        lines = [
-            "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; >= where one "
-            f"joint's is unknown{', undetermined where one joint is' if loose else ''}):"
-        ]
-        spread = bone_uncertainty(self.skeleton)
-        for (j0, j1), bound in zip(self.skeleton.bones, spread):
-            name = self._bone_name(j0, j1)
-            lines.append(f"  {name}: {bones[name]:.4f}  {bone_bound((j0, j1), resolution, bound, self.joint_name)}")
-        return lines
-
-    def save(self, path: str, *, overwrite: bool = False, extra_groups: dict[str, Any] | None = None) -> None:
-        """Write the HDF5 result file (schema in the README), atomically.
-
-        ``extra_groups`` maps group names to functions filling them (used for
-        ``/normalized`` and ``/parameters``).
-        """
-        from ..result._format import save_result
-
-        save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
-
-    def export_bvh(
-        self,
-        path: str,
-        *,
-        trial: int | None = None,
-        overwrite: bool = False,
-        units: str = "m",
-        rotation_order: str = "ZXY",
-    ) -> Path:
-        """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.export_bvh`),
-        segments named by :attr:`segment_names`, at the recording's frame rate.
-
-        ``trial`` picks one input trial of a joint fit (its frames, ``trial_bounds``);
-        ``None`` writes every frame of the fitted recording, the trials one after another.
-        Returns the path written.
-        """
-        if self.skeleton is None or self.motion is None:
-            raise InputError(
-                "export_bvh needs the rigid skeleton and its motion; fit with rigid=True and ik=True (the defaults)"
-            )
-        motion = self.motion
-        if trial is not None:
-            n = len(self.trial_bounds)
-            if isinstance(trial, bool) or not isinstance(trial, (int, np.integer)) or not 0 <= trial < n:
-                raise InputError(f"trial must be an index 0..{n - 1} of the {n} fitted trial(s), got {trial!r}")
-            start, stop = self.trial_bounds[int(trial)]
-            frames = motion.n_frames
-            motion = dataclasses.replace(motion, **{
-                f.name: getattr(motion, f.name)[start:stop]
-                for f in dataclasses.fields(motion)
-                if isinstance(getattr(motion, f.name), np.ndarray) and getattr(motion, f.name).shape[:1] == (frames,)
-            })  # fmt: skip
-        from ..result._bvh import export_bvh
-
-        return export_bvh(
-            self.skeleton, motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
-            labels=self.segment_names, rotation_order=rotation_order,
-        )
-
-
 def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
     """A :class:`DegenerateMotionWarning` naming the joints the recording does not exercise."""
-    from ..joints._anchored_centres import MIN_EXERCISE_DEG
+    from ..joints import MIN_EXERCISE_DEG
 
     still = [f"{name} ({sweep:.1f} deg)" for name, sweep in zip(joint_names, exercise) if sweep < MIN_EXERCISE_DEG]
     if still:
@@ -412,8 +99,8 @@ def _warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:
 
 def _warn_undetermined(skeleton: Any, names: Sequence[str]) -> None:
     """A :class:`DegenerateMotionWarning` naming the joints the recording fixes only loosely
-    (:func:`jaxskel.undetermined_joints`) and the motion each lacks."""
-    from ..joints._determination import undetermined_joints
+    (:func:`jaxskel.joints.undetermined_joints`) and the motion each lacks."""
+    from ..joints import undetermined_joints
 
     loose = undetermined_joints(skeleton)
     if loose:
@@ -425,61 +112,15 @@ def _warn_undetermined(skeleton: Any, names: Sequence[str]) -> None:
         )
 
 
-def _nonrigid_group_texts(seg: Segmentation, names: Sequence[str]) -> list[str]:
-    """One line per segment whose markers move relative to each other (:meth:`Segmentation.nonrigid_groups`)."""
-    return [
-        f"segment {names[g]} is not rigid: {a} and {b} move relative to each other "
-        f"(distance std {1e3 * std:.1f} mm, rigidity limit {1e3 * seg.rigid_limit:.1f} mm)"
-        for g, a, b, std in seg.nonrigid_groups()
-    ]
-
-
-def _nonrigid_group_hint(seg: Segmentation) -> str:
-    """What to try when some segment's group is not rigid."""
-    if seg.rigid_count:
-        return (
-            f"compare n_segments={seg.rigid_count} (--segments {seg.rigid_count}): the first larger count whose "
-            "groups are all rigid, not chosen because it leaves a marker alone in a group"
-        )
-    return "two segments clustered as one, or a loose marker: consider a larger n_segments (--segments)"
-
-
 def _warn_nonrigid_groups(seg: Segmentation, names: Sequence[str]) -> None:
     """A :class:`NonRigidMarkerWarning` naming the segments whose groups are not rigid."""
-    groups = _nonrigid_group_texts(seg, names)
+    groups = nonrigid_group_texts(seg, names)
     if groups:
         warnings.warn(
-            f"{len(groups)} segment(s) not rigid:\n" + "\n".join(groups) + "\n" + _nonrigid_group_hint(seg),
+            f"{len(groups)} segment(s) not rigid:\n" + "\n".join(groups) + "\n" + nonrigid_group_hint(seg),
             NonRigidMarkerWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
-
-
-def _nonrigid_text(skeleton: Any, names: Sequence[str], n_segments: int) -> str | None:
-    """One line on the markers the rigid skeleton flags as not rigid, or ``None``."""
-    if not skeleton.nonrigid_markers:
-        return None
-    labels = list(skeleton.marker_labels)
-    where = [labels.index(lab) for lab in skeleton.nonrigid_markers]
-    items = ", ".join(
-        f"{labels[i]} on {names[int(skeleton.marker_segment[i])]} ({1e3 * skeleton.marker_rms[i]:.1f} mm)"
-        for i in where
-    )
-    return (
-        f"not rigid on their segment: {items}; the rigid skeleton's residual RMS, against a median of "
-        f"{1e3 * np.nanmedian(skeleton.marker_rms):.1f} mm. Soft tissue, a marker on a joint, or two segments "
-        f"clustered as one: compare n_segments={n_segments + 1} (--segments)"
-    )
-
-
-def _untested_text(u: Any, names: Sequence[str], sizes: np.ndarray) -> str:
-    """One line on an :class:`jaxskel.UntestedJoint`."""
-    count = int(sizes[u.segment] + sizes[u.untested])
-    return (
-        f"  untested: {names[u.segment]} is jointed to {names[u.jointed_to]} but moves more rigidly with "
-        f"{names[u.untested]} (median distance std {1e3 * u.std_untested:.1f} vs {1e3 * u.std_jointed:.1f} mm); "
-        f"their {count} markers are too few to test a joint (4 needed): add a marker or check this joint"
-    )
 
 
 def _require_one_tree(topology: Topology, segmentation: Segmentation, names: Sequence[str]) -> None:
@@ -516,34 +157,10 @@ def _warn_untested(untested: list, names: Sequence[str], sizes: np.ndarray) -> N
     if untested:
         warnings.warn(
             "the tree may attach sparsely marked segments to the wrong neighbour:\n"
-            + "\n".join(_untested_text(u, names, sizes) for u in untested),
+            + "\n".join(untested_text(u, names, sizes) for u in untested),
             DegenerateMotionWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
         )
-
-
-def _near_tie_text(tie: Any, names: Sequence[str]) -> str:
-    """One line on a :class:`jaxskel.NearTie`."""
-    (p, c), (a, b) = tie.edge, tie.rival
-    return (
-        f"near tie: {names[p]}-{names[c]} ({1e6 * tie.cost:.3f} mm^2) against {names[a]}-{names[b]} "
-        f"({1e6 * tie.rival_cost:.3f} mm^2, {100 * tie.margin:+.1f} %, within the costs' sampling noise of "
-        f"{100 * tie.noise:.1f} %): the tree could joint either"
-    )
-
-
-def _pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
-    """One line on a :class:`jaxskel.PoseExchange`."""
-    (a, b), (p, c) = exchange.added, exchange.removed
-    (m_removed, m_added), (c_removed, c_added) = exchange.misfit, exchange.cost
-    how = {  # PoseExchange.test
-        "fixed": "a centre fixed in both segments fits",
-        "sphere": "one segment's markers about a centre fixed in the other's pose fit",
-    }.get(getattr(exchange, "test", "fixed"), "the poses fit")
-    return (
-        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: {how} {1e6 * m_added:.1f} "
-        f"against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} against {1e6 * c_removed:.3f} mm^2)"
-    )
 
 
 def _warn_near_ties(ties: list, names: Sequence[str]) -> None:
@@ -551,7 +168,7 @@ def _warn_near_ties(ties: list, names: Sequence[str]) -> None:
     if ties:
         warnings.warn(
             f"{len(ties)} joint(s) of the tree are not settled by the data:\n"
-            + "\n".join(_near_tie_text(t, names) for t in ties)
+            + "\n".join(near_tie_text(t, names) for t in ties)
             + "\nCheck them (summary, --plot), or fit with a trial that exercises those joints",
             AmbiguousTreeWarning,
             stacklevel=5,  # fit_skeleton's caller (via fit_joints_and_skeleton, finish_fit)
@@ -604,23 +221,23 @@ def fit_skeleton(
         (fitted together: e.g. a range-of-motion trial plus a walk).
     n_segments
         Number of rigid segments, or ``None`` for an automatic count: the eigengap's,
-        grown until every group is rigid (:func:`jaxskel.segment_markers`), and grown
+        grown until every group is rigid (:func:`jaxskel.segment.segment_markers`), and grown
         again by one, with the fit rerun, while a segment holds two or more markers the
         rigid skeleton cannot hold (:mod:`jaxskel.pipeline._split_refit`; kept only if fewer
         markers are flagged). A given count is never changed.
     root
         Root segment index or a marker label on it; default the tree's centre.
     clean_data
-        Run :func:`jaxskel.clean` first (recommended for raw data).
+        Run :func:`jaxskel.clean.clean` first (recommended for raw data).
     merge_labels
-        Merge relabelled passive markers (:func:`jaxskel.merge_labels`): ``True``,
+        Merge relabelled passive markers (:func:`jaxskel.relabel.merge_labels`): ``True``,
         ``False``, or ``"auto"``: merge when there are more labels than the most
         markers seen in any one frame *and* the recording has unnamed (``*N``)
         trajectories. A named recording with occlusions also has more labels than
         markers per frame; merging it by default would risk joining distinct
         markers, so it only gets a warning.
     alpha, alpha_tree, method, topology_frames
-        Joint solve settings (see :func:`jaxskel.joint_costs`, :func:`jaxskel.fit_topology`).
+        Joint solve settings (see :func:`jaxskel.joints.joint_costs`, :func:`jaxskel.joints.fit_topology`).
     rigid, ik
         Also fit the rigid skeleton and run inverse kinematics.
     segment_names
@@ -630,7 +247,7 @@ def fit_skeleton(
         Show a progress bar over the stages.
     confirm_merges
         After merging labels, check the merges against the fitted skeleton
-        (:func:`jaxskel.confirm_merges`) and, if it corrects any, segment and fit
+        (:func:`jaxskel.relabel.confirm_merges`) and, if it corrects any, segment and fit
         again from the corrected merge. Needs ``rigid`` and ``ik``.
     hinge_centres
         Where the rigid skeleton puts a joint whose centre the markers leave free along
@@ -650,7 +267,7 @@ def fit_skeleton(
         recording fixes each joint and bone (:meth:`SkeletonResult.joint_resolutions`,
         :meth:`SkeletonResult.undetermined_joints`; ``"per_frame"`` has none, NaN).
     ik_lowpass
-        Low-pass filter of the markers the IK poses (:func:`jaxskel.lowpass_markers`;
+        Low-pass filter of the markers the IK poses (:func:`jaxskel.clean.lowpass_markers`;
         the skeleton is fitted to the markers as measured): ``"auto"`` (default), a
         cutoff for each marker by residual analysis against its own white noise, which
         leaves noiseless or fast markers as they are; a frequency in Hz for every
@@ -798,7 +415,7 @@ def prepare_fit(
     mapping = None
     with prep.stage("merge labels", on_stage), device:
         if do_merge:
-            from ..relabel._merge import merge_labels as _merge
+            from ..relabel import merge_labels as _merge
 
             prep.merge_input = work
             work, mapping = _merge(work)
@@ -857,15 +474,14 @@ def _inverse_kinematics(prep: PreparedFit, skeleton: Any, work: Trial, on_stage:
     with prep.stage("ik", on_stage):
         if not (prep.settings.get("ik", True) and skeleton is not None):
             return None
-        from ..skeleton._ik import inverse_kinematics
-        from ..skeleton._ik_batch import solver_shape
+        from ..skeleton import inverse_kinematics, solver_shape
 
         # the refinement's slot count: its compiled solver serves the IK too
         slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
         cutoff = prep.settings.get("ik_lowpass", "auto")
         if cutoff is None:
             return inverse_kinematics(skeleton, work, slots=slots)
-        from ..clean._lowpass import lowpass_markers
+        from ..clean import lowpass_markers
 
         # IK poses every frame on its own: the markers' white noise is filtered out first
         low = lowpass_markers(work, cutoff)
@@ -900,7 +516,7 @@ def _confirm_merges_and_refit(
 
     ``refit(prep)`` runs the joint and skeleton stages on a prepared fit.
     """
-    from ..relabel._confirm import confirm_merges
+    from ..relabel import confirm_merges
 
     with prep.stage("confirm merges", on_stage):
         merged, mapping = confirm_merges(prep.merge_input, prep.label_mapping, result)
@@ -933,11 +549,11 @@ def finish_fit(
             f"segment_names has {len(names)} names for {segmentation.n_segments} segments"
         )
 
-    from ..joints._topology import untested_joints
+    from ..joints import untested_joints
 
     _warn_nonrigid_groups(segmentation, names)
     _warn_untested(untested_joints(segmentation, topology), names, segmentation.segment_sizes)
-    from ..joints._near_ties import near_ties
+    from ..joints import near_ties
 
     _warn_near_ties(near_ties(work, segmentation, topology), names)
     skeleton = None
@@ -945,14 +561,14 @@ def finish_fit(
         _require_one_tree(topology, segmentation, names)
     with prep.stage("rigid", on_stage):
         if prep.settings.get("rigid", True) and len(topology.edges):
-            from ..skeleton._rigid_fit import SOLVED_JOINT_WEIGHT, fit_rigid
+            from ..skeleton import SOLVED_JOINT_WEIGHT, fit_rigid
 
             sliding = None
             if prep.settings.get("hinge_centres", "limb_plane") == "limb_plane":
                 sliding = np.asarray(topology.undetermined) > 0
             centres, anchored = topology.joint_positions, None
             if prep.settings.get("joint_centres", "anchored") == "anchored":
-                from ..joints._anchored_centres import anchored_centres
+                from ..joints import anchored_centres
 
                 x, mask = work.to_arrays()
                 anchored = anchored_centres(
@@ -969,7 +585,7 @@ def finish_fit(
                 joint_names = [f"{names[p]}-{names[c]}" for p, c in topology.edges]
                 _warn_unexercised(anchored.exercise, joint_names)
                 _warn_undetermined(skeleton, names)
-            nonrigid = _nonrigid_text(skeleton, names, segmentation.n_segments)
+            nonrigid = nonrigid_text(skeleton, names, segmentation.n_segments)
             if nonrigid is not None:
                 warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=4)
     # without IK (a fit that may be segmented again first, :mod:`jaxskel.pipeline._split_refit`) the

@@ -1,12 +1,12 @@
 """Grow an automatic segment count where the rigid skeleton cannot hold a group.
 
-The automatic count (:func:`jaxskel.segment_markers`: the eigengap, grown until every
+The automatic count (:func:`jaxskel.segment.segment_markers`: the eigengap, grown until every
 group is rigid at ``rigid_ratio * sigma``) can join two segments whose joint moves
 little: their markers' distances vary by a few millimetres, under the segmentation's
 rigidity limit (``sigma`` is at least 3 mm, so that soft tissue on real data does not
 split segments). The rigid skeleton sees such a group plainly: one rigid body cannot
 follow both parts, and the markers of the smaller part keep residuals of several times
-the median (:attr:`jaxskel.Skeleton.nonrigid_markers`, ``> 3x`` the median RMS and
+the median (:attr:`jaxskel.skeleton.Skeleton.nonrigid_markers`, ``> 3x`` the median RMS and
 ``> median + 1 mm``). Random 12-segment trees (1 mm noise): the eigengap joined two
 segments twice in four seeds, and in both the joined group held 2-5 flagged markers.
 
@@ -15,7 +15,7 @@ like on real data (the bundled sample's right head marker, a forearm marker in H
 bd), so the count grows only where a segment holds **two or more** flagged markers:
 
 1. segment again from scratch with one segment more (the paper's samplings and
-   scoring, :func:`jaxskel.segment_markers` given ``n``), and fit the joints and the
+   scoring, :func:`jaxskel.segment.segment_markers` given ``n``), and fit the joints and the
    rigid skeleton again;
 2. keep the new fit only if its rigid skeleton flags fewer markers *and* it leaves no
    more single-marker segments (a marker peeled off alone is always "rigid", and its
@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import DegenerateMotionError
-from ..segment._spectral import _singletons, segment_markers
+from ..segment import count_singletons, segment_markers
 
 __all__ = ["crowded_nonrigid", "fit_growing_count", "MAX_SPLITS"]
 
@@ -115,7 +115,7 @@ def fit_growing_count(
         if candidate.skeleton is None:
             continue
         fewer = len(candidate.skeleton.nonrigid_markers) < len(result.skeleton.nonrigid_markers)
-        if fewer and _singletons(grown.marker_segment) <= _singletons(base.marker_segment):
+        if fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment):
             result, kept_warnings = candidate, list(caught)
     _replay(kept_warnings, stacklevel + 1)
     return add_motion(prep, dataclasses.replace(result, settings=settings))

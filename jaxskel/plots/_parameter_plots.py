@@ -1,6 +1,6 @@
 """Figures of the parameterisation (Sar Dessai et al. 2006, Figs. 2 and 4): joint spheres, speeds, angles.
 
-Every function takes a :class:`~jaxskel.Parameterization`, returns a
+Every function takes a :class:`~jaxskel.sd06.Parameterization`, returns a
 :class:`matplotlib.figure.Figure` (built without pyplot, so no GUI backend or
 global state is involved) and, given ``path``, also saves it there.
 """

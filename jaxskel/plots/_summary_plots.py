@@ -227,7 +227,7 @@ def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, ove
     fig.suptitle(str(result.trial.source or "jaxskel fit"), fontsize=9)
     fig.tight_layout()
     if path is not None:
-        from ..io._atomic import atomic_output
+        from ..io import atomic_output
 
         with atomic_output(path, overwrite) as tmp:
             fig.savefig(tmp, dpi=110, format=os.path.splitext(str(path))[1].lstrip(".") or "png")

@@ -1,6 +1,6 @@
 """Skeleton-based confirmation and correction of label merges (beyond Kirk et al. §4).
 
-:func:`jaxskel.merge_labels` decides which fragments are one physical marker
+:func:`jaxskel.relabel.merge_labels` decides which fragments are one physical marker
 from marker data alone. Once a skeleton has been fitted to the merged trial,
 its inverse-kinematics motion poses every segment in *every* frame, including
 the frames where a marker was lost. That gives a sharper test of a merge than
@@ -37,7 +37,7 @@ skeleton alone undid good merges where the subject leaves the capture volume
 and the poses are extrapolated; with the minimum, one of the four wrong links
 is fixed and three of the five wrongly dropped fragments rejoin their marker
 (labels right: 92.7 % -> 96.8 %). The exact chain assignment of
-:func:`jaxskel.merge_labels` is then solved again (same drop cost for short
+:func:`jaxskel.relabel.merge_labels` is then solved again (same drop cost for short
 ghosts, same marker-count rule). Links it keeps are *confirmed*; new ones are
 *corrections*; every decision again gets the regret confidence ``r / (r + c)``.
 A skeleton that explains too few samples (wrong segmentation) is not used.
@@ -58,8 +58,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionWarning, InputError
 from .._math.geometry import quat_to_matrix
+from ..io import Trial
 from ._fragments import Fragments, fragment_arrays
-from ..io._trial import Trial
 
 __all__ = ["confirm_merges", "fragment_offsets", "skeleton_link_cost"]
 
@@ -126,14 +126,14 @@ def confirm_merges(
     min_explained: float = 0.5,
     max_link_distance: float | None = None,
 ) -> tuple[Trial, Any]:
-    """Confirm or correct the merges of :func:`jaxskel.merge_labels` with a fitted skeleton.
+    """Confirm or correct the merges of :func:`jaxskel.relabel.merge_labels` with a fitted skeleton.
 
     Parameters
     ----------
     trial
-        The recording that was given to :func:`jaxskel.merge_labels` (before merging).
+        The recording that was given to :func:`jaxskel.relabel.merge_labels` (before merging).
     mapping
-        Its :class:`jaxskel.LabelMapping`.
+        Its :class:`jaxskel.relabel.LabelMapping`.
     fit
         The :class:`jaxskel.SkeletonResult` of fitting the merged recording (same
         frames, with inverse kinematics): its segment poses predict where each

@@ -80,6 +80,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
+from ..io import Trial
 from ._assign import ChainProblem, Chains, spectral_clusters
 from ._fragments import (
     Fragments,
@@ -96,7 +97,6 @@ from ._search import (
     rigid_weight,
     sampled_distance,
 )
-from ..io._trial import Trial
 
 __all__ = ["merge_labels", "LabelMapping", "needs_merging"]
 
@@ -158,7 +158,7 @@ class LabelMapping:
         (L,) ``r / (r + c)`` in [0, 1]: c the merge's cost in the assignment and
         r its regret, how much the optimal total cost rises without it.
     link_confirmed
-        (L,) only after :func:`jaxskel.confirm_merges` (else ``None``): True where
+        (L,) only after :func:`jaxskel.relabel.confirm_merges` (else ``None``): True where
         the marker-only assignment had made the merge too, False where the
         fitted skeleton corrected it. ``link_error`` then holds the skeleton's
         prediction error of the merge instead of the neighbours' one.
@@ -259,7 +259,7 @@ def merge_labels(
     ----------
     trial
         The recording (metres). Ghosts and jumps may be present; running
-        :func:`jaxskel.clean` first (with ``min_run_s=0``, so that short
+        :func:`jaxskel.clean.clean` first (with ``min_run_s=0``, so that short
         relabelled runs survive) removes the worst jumps.
     n_physical
         Number of physical markers if known. By default as few as the data

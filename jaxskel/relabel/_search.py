@@ -1,7 +1,7 @@
 """Host side of the fragment distances D: sampling, candidates, padding, weights.
 
 Decides what the JAX kernels of :mod:`jaxskel.relabel._distance` compute and
-pads every array to bucket sizes (:func:`jaxskel.bucket_size`) so that a few
+pads every array to bucket sizes (:func:`jaxskel._math.padding.bucket_size`) so that a few
 compiled shapes serve recordings of many sizes.
 """
 

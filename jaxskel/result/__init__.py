@@ -1,0 +1,21 @@
+"""The result of a fit: SkeletonResult, its summary, its HDF5 file format and its BVH
+export.
+"""
+
+from __future__ import annotations
+
+from ._bvh import BvhData, export_bvh, read_bvh
+from ._format import ResultFile, SCHEMA_VERSION, load_result
+from ._result import SkeletonResult
+
+# Used by the other parts of jaxskel (they import a stage through its package, never
+# its private modules); not public API.
+from ._summary import (
+    near_tie_text, nonrigid_group_hint, nonrigid_group_texts, nonrigid_text, undetermined_lines,
+    untested_text,
+)
+
+__all__ = [
+    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "export_bvh", "load_result",
+    "read_bvh",
+]

@@ -34,13 +34,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..io._atomic import atomic_output
 from .._errors import InputError
-from ..segment._names import names_from_markers, safe_name
+from ..io import atomic_output
+from ..segment import names_from_markers, safe_name
 
 if TYPE_CHECKING:
-    from ..skeleton._ik import Motion
-    from ..skeleton._rigid_fit import Skeleton
+    from ..skeleton import Motion, Skeleton
 
 __all__ = ["BvhData", "export_bvh", "read_bvh"]
 
@@ -86,7 +85,7 @@ def export_bvh(
     Parameters
     ----------
     skeleton, motion
-        From :func:`jaxskel.fit_rigid` and :func:`jaxskel.inverse_kinematics` (one trial).
+        From :func:`jaxskel.skeleton.fit_rigid` and :func:`jaxskel.skeleton.inverse_kinematics` (one trial).
     path
         Destination ``.bvh`` file; an existing file is replaced only with ``overwrite``.
     rate

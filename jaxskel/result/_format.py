@@ -22,8 +22,8 @@ Schema version 1 (documented in the README, "Result file"):
   (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance); ``fixed_misfit``
   (S, S), ``pose_exchanges`` (x, 4) (removed pair, added pair) with ``pose_exchanges_values`` (x, 4)
   (misfit removed, added; joint cost removed, added) and ``pose_exchanges_test`` (x,) str (``fixed`` or
-  ``sphere``, :class:`jaxskel.PoseExchange`), ``attachments`` (a, 3) (one-marker segment, host, bridge or -1)
-  with ``attachments_rigidity`` (a,) metres (:class:`jaxskel.Attachment`);
+  ``sphere``, :class:`jaxskel.joints.PoseExchange`), ``attachments`` (a, 3) (one-marker segment, host, bridge or -1)
+  with ``attachments_rigidity`` (a,) metres (:class:`jaxskel.joints.Attachment`);
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded, ``resolution`` (J,)
   and ``undetermined`` (u,) joint indices (:mod:`jaxskel.joints._determination`);
@@ -42,16 +42,15 @@ from __future__ import annotations
 import datetime
 import json
 import os
-from pathlib import Path
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
 
-from ..io._atomic import atomic_output, input_sources, refuse_input
-from ..io._h5_values import put
 from .._errors import InputError, SchemaError
+from ..io import atomic_output, input_sources, put, refuse_input
 
 __all__ = ["SCHEMA_VERSION", "save_result", "load_result", "ResultFile"]
 
@@ -60,7 +59,7 @@ def _write_skeleton(g: h5py.Group, skeleton: Any) -> None:
     for name in ("marker_offsets", "joint_offsets", "bones", "bone_lengths", "marker_rms"):
         if getattr(skeleton, name, None) is not None:
             put(g, name, np.asarray(getattr(skeleton, name)))
-    from ..joints._determination import bone_uncertainty
+    from ..joints import bone_uncertainty
 
     put(g, "bone_uncertainty", bone_uncertainty(skeleton))
     if getattr(skeleton, "nonrigid_markers", None) is not None:
@@ -144,12 +143,12 @@ def save_result(
             reasons = topo.pair_costs.reasons
             put(g, "infeasible", np.asarray(list(reasons.keys()), dtype=int).reshape(-1, 2))
             put(g, "infeasible_reason", np.asarray(list(reasons.values()), dtype=str))  # str even when empty
-            from ..joints._topology import untested_joints
+            from ..joints import untested_joints
 
             untested = untested_joints(seg, topo)
             put(g, "untested", np.asarray([u[:3] for u in untested], dtype=int).reshape(-1, 3))
             put(g, "untested_std", np.asarray([u[3:] for u in untested], dtype=float).reshape(-1, 2))
-            from ..joints._near_ties import near_ties
+            from ..joints import near_ties
 
             ties = near_ties(result.trial, seg, topo)
             put(g, "near_ties", np.asarray([[t.joint, *t.rival] for t in ties], dtype=int).reshape(-1, 3))
@@ -296,7 +295,7 @@ def _with_segment_names(result: ResultFile) -> ResultFile:
     where the file has none."""
     if "segments" not in result or "names" in result.segments or "markers/used_segment" not in result:
         return result
-    from ..segment._names import names_from_markers
+    from ..segment import names_from_markers
 
     n_segments = len(result.segments.sizes) if "sizes" in result.segments else len(result.topology.edges) + 1
     labels = [str(v) for v in result.markers.used_labels]

@@ -39,10 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from ..joints._anchored_centres import MIN_EXERCISE_DEG
-from ..joints._determination import UNDETERMINED_RESOLUTION
+from ..joints import MIN_EXERCISE_DEG, UNDETERMINED_RESOLUTION
+from ..segment import Segmentation
 
 __all__ = [
+    "near_tie_text", "nonrigid_group_hint", "nonrigid_group_texts", "nonrigid_text", "pose_exchange_text",
+    "untested_text",
     "bone_bound", "is_loose", "millimetres", "missing_motion", "resolution_cell", "tree_lines", "undetermined_lines",
 ]
 
@@ -115,7 +117,7 @@ def undetermined_lines(joints: Sequence[int], names: Sequence[str], skeleton: An
     joints)."""
     if not len(joints):
         return []
-    from ..joints._determination import loose_directions, radial_share
+    from ..joints import loose_directions, radial_share
 
     edges = np.asarray(skeleton.edges)
     anchored = skeleton.diagnostics.get("anchored") or {}
@@ -161,8 +163,7 @@ def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any],
     """How the tree was chosen, and its runner-up (module docstring). With ``segmentation``
     the runner-up is judged on the costs the core's tree was built on (attachments left
     out); without it on the joint costs."""
-    from ..joints._attachments import core_costs
-    from ..joints._near_ties import runner_up
+    from ..joints import core_costs, runner_up
 
     lines = [_how_chosen(topology, len(names), settings)]
     best = runner_up(topology, None if segmentation is None else core_costs(topology.pair_costs, segmentation))
@@ -176,3 +177,73 @@ def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any],
         "the cheapest other pair across its cut"
     )
     return lines
+
+
+def nonrigid_group_texts(seg: Segmentation, names: Sequence[str]) -> list[str]:
+    """One line per segment whose markers move relative to each other (:meth:`Segmentation.nonrigid_groups`)."""
+    return [
+        f"segment {names[g]} is not rigid: {a} and {b} move relative to each other "
+        f"(distance std {1e3 * std:.1f} mm, rigidity limit {1e3 * seg.rigid_limit:.1f} mm)"
+        for g, a, b, std in seg.nonrigid_groups()
+    ]
+
+
+def nonrigid_group_hint(seg: Segmentation) -> str:
+    """What to try when some segment's group is not rigid."""
+    if seg.rigid_count:
+        return (
+            f"compare n_segments={seg.rigid_count} (--segments {seg.rigid_count}): the first larger count whose "
+            "groups are all rigid, not chosen because it leaves a marker alone in a group"
+        )
+    return "two segments clustered as one, or a loose marker: consider a larger n_segments (--segments)"
+
+
+def nonrigid_text(skeleton: Any, names: Sequence[str], n_segments: int) -> str | None:
+    """One line on the markers the rigid skeleton flags as not rigid, or ``None``."""
+    if not skeleton.nonrigid_markers:
+        return None
+    labels = list(skeleton.marker_labels)
+    where = [labels.index(lab) for lab in skeleton.nonrigid_markers]
+    items = ", ".join(
+        f"{labels[i]} on {names[int(skeleton.marker_segment[i])]} ({1e3 * skeleton.marker_rms[i]:.1f} mm)"
+        for i in where
+    )
+    return (
+        f"not rigid on their segment: {items}; the rigid skeleton's residual RMS, against a median of "
+        f"{1e3 * np.nanmedian(skeleton.marker_rms):.1f} mm. Soft tissue, a marker on a joint, or two segments "
+        f"clustered as one: compare n_segments={n_segments + 1} (--segments)"
+    )
+
+
+def untested_text(u: Any, names: Sequence[str], sizes: np.ndarray) -> str:
+    """One line on an :class:`jaxskel.joints.UntestedJoint`."""
+    count = int(sizes[u.segment] + sizes[u.untested])
+    return (
+        f"  untested: {names[u.segment]} is jointed to {names[u.jointed_to]} but moves more rigidly with "
+        f"{names[u.untested]} (median distance std {1e3 * u.std_untested:.1f} vs {1e3 * u.std_jointed:.1f} mm); "
+        f"their {count} markers are too few to test a joint (4 needed): add a marker or check this joint"
+    )
+
+
+def near_tie_text(tie: Any, names: Sequence[str]) -> str:
+    """One line on a :class:`jaxskel.joints.NearTie`."""
+    (p, c), (a, b) = tie.edge, tie.rival
+    return (
+        f"near tie: {names[p]}-{names[c]} ({1e6 * tie.cost:.3f} mm^2) against {names[a]}-{names[b]} "
+        f"({1e6 * tie.rival_cost:.3f} mm^2, {100 * tie.margin:+.1f} %, within the costs' sampling noise of "
+        f"{100 * tie.noise:.1f} %): the tree could joint either"
+    )
+
+
+def pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
+    """One line on a :class:`jaxskel.joints.PoseExchange`."""
+    (a, b), (p, c) = exchange.added, exchange.removed
+    (m_removed, m_added), (c_removed, c_added) = exchange.misfit, exchange.cost
+    how = {  # PoseExchange.test
+        "fixed": "a centre fixed in both segments fits",
+        "sphere": "one segment's markers about a centre fixed in the other's pose fit",
+    }.get(getattr(exchange, "test", "fixed"), "the poses fit")
+    return (
+        f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: {how} {1e6 * m_added:.1f} "
+        f"against {1e6 * m_removed:.1f} mm^2 (joint costs {1e6 * c_added:.3f} against {1e6 * c_removed:.3f} mm^2)"
+    )

@@ -656,7 +656,7 @@ def write_normalized(group: Any, normalization: Normalization) -> None:
     ``joint_offsets`` (J, 2, 3) and, when known, ``origins_local`` (S, 3).
     Attributes: the cost ``weights`` and ``scale``, ``candidate_tolerance``, ``root``, ``convention``.
     """
-    from ..io._h5_values import put as _put
+    from ..io import put as _put
 
     n = normalization
     _put(group, "default_frame", np.int64(n.default_frame))

@@ -51,7 +51,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _axes
 from .._errors import ConvergenceWarning, DegenerateMotionWarning, InputError
 from .._math.geometry import (
     axis_angle_to_quat,
@@ -62,8 +61,15 @@ from .._math.geometry import (
     quat_to_axis_angle,
     quat_to_matrix,
 )
-from ._normalize import Normalization, freeze_fields, normalize, normalize_arrays, tree_arrays
 from .._math.padding import bucket_size
+from . import _axes
+from ._normalize import (
+    Normalization,
+    freeze_fields,
+    normalize,
+    normalize_arrays,
+    tree_arrays,
+)
 
 __all__ = [
     "METHODS",
@@ -440,7 +446,7 @@ class Parameterization:
         (J,) group merges (joining) or EM iterations, and whether EM settled
         (always True for joining and PCA).
     normalization
-        The :class:`~jaxskel.Normalization` the samples were taken in.
+        The :class:`~jaxskel.sd06.Normalization` the samples were taken in.
     """
 
     method: str
@@ -705,7 +711,7 @@ def parameterize(
         ``motion.segment_translations``. The motion should contain a calibration
         phase in which every joint performs its main movements one at a time.
     normalization
-        From :func:`~jaxskel.normalize` (computed with ``up_axis`` when None).
+        From :func:`~jaxskel.sd06.normalize` (computed with ``up_axis`` when None).
     method
         "joining" (the paper's direction joining), or the baselines "pca" / "em".
     n_axes
@@ -721,7 +727,7 @@ def parameterize(
     if normalization is None:
         normalization = normalize(skeleton, motion, up_axis=up_axis)
     elif not isinstance(normalization, Normalization):
-        raise InputError(f"normalization must be a jaxskel.Normalization, got {type(normalization).__name__}")
+        raise InputError(f"normalization must be a jaxskel.sd06.Normalization, got {type(normalization).__name__}")
     return parameterize_normalized(normalization, method=method, n_axes=n_axes, **options)
 
 
@@ -755,7 +761,7 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
     ``residual`` (F, J) radians, ``axis_rms`` (J,), ``exercised`` (J,), ``steps`` (J,),
     ``converged`` (J,). Attributes: ``method`` and the settings.
     """
-    from ..io._h5_values import put as _put
+    from ..io import put as _put
 
     p = parameterization
     for name in (

@@ -1,0 +1,16 @@
+"""Grouping markers into rigid segments (Kirk et al. 2005, sec. 4.1): spectral clustering
+of the pairwise-distance standard deviations, the count from the eigengap; and readable
+segment names.
+"""
+
+from __future__ import annotations
+
+from ._names import names_from_markers
+from ._spectral import Segmentation, combine_trials, distance_std, segment_markers
+
+# Used by the other parts of jaxskel (they import a stage through its package, never
+# its private modules); not public API.
+from ._names import safe_name, segment_names
+from ._spectral import count_singletons, white_noise
+
+__all__ = ["Segmentation", "combine_trials", "distance_std", "names_from_markers", "segment_markers"]

@@ -67,9 +67,9 @@ from jaxtyping import Array, Bool, Float
 
 from .._errors import DegenerateMotionError, InputError
 from .._math.padding import bucket_size
-from ..io._trial import Trial
+from ..io import Trial
 
-__all__ = ["Segmentation", "segment_markers", "distance_std", "sample_frames", "white_noise"]
+__all__ = ["Segmentation", "segment_markers", "combine_trials", "count_singletons", "distance_std", "sample_frames", "white_noise"]
 
 
 @jax.jit
@@ -351,7 +351,7 @@ def _least_rigidity(labels: np.ndarray, a: np.ndarray) -> float:
     return max(a_ij for _, _, a_ij in _least_rigid_pairs(labels, a))
 
 
-def _singletons(labels: np.ndarray) -> int:
+def count_singletons(labels: np.ndarray) -> int:
     return int(np.sum(np.bincount(labels) == 1))
 
 
@@ -615,7 +615,7 @@ def segment_markers(
                     # Accepting a lone marker whose most rigid partner's group is large
                     # enough for a joint was tried: better on numediart 85_12 (8 -> 13),
                     # worse on 03_rolling (14 -> 24), squat and biobuddy's trunk trial.
-                    if _singletons(grown[0]) <= _singletons(labels):
+                    if count_singletons(grown[0]) <= count_singletons(labels):
                         rule, (labels, scores, best) = "rigid", grown
                     else:
                         rigid_count = n

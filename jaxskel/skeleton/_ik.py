@@ -100,8 +100,8 @@ from .._math.geometry import (
 from .._math.padding import bucket_size
 
 if TYPE_CHECKING:
+    from ..io import Trial
     from ._rigid_fit import Skeleton
-    from ..io._trial import Trial
 
 __all__ = [
     "Chain",
@@ -673,7 +673,7 @@ class Motion:
     """Inverse-kinematics result: the skeleton's pose in every frame.
 
     Arrays have a leading trial axis when the input had one. Orientations are global
-    (segment frame -> world, the convention of :class:`jaxskel.Skeleton`).
+    (segment frame -> world, the convention of :class:`jaxskel.skeleton.Skeleton`).
 
     Attributes
     ----------
@@ -703,7 +703,7 @@ class Motion:
         Labels of the marker axis and the frame rate (Hz; None if unknown).
     lowpass_hz
         (M,) the cutoff each marker was low-pass filtered at before the IK
-        (:func:`jaxskel.lowpass_markers`; NaN: as measured), ``None`` when none was
+        (:func:`jaxskel.clean.lowpass_markers`; NaN: as measured), ``None`` when none was
         (:func:`inverse_kinematics` itself never filters; :func:`jaxskel.fit_skeleton`
         does, and then reports ``marker_rms`` against the markers as measured).
     """
@@ -736,7 +736,7 @@ class Motion:
 
     def fitted_trial(self, *, source: str = "jaxskel inverse kinematics", up_axis: str = "unknown") -> Trial:
         """The fitted markers as a :class:`jaxskel.Trial` (e.g. to save as TRC or C3D)."""
-        from ..io._trial import Trial
+        from ..io import Trial
 
         if self.rate is None:
             raise InputError("this motion has no frame rate; pass a Trial (or rate=) to inverse_kinematics")
@@ -798,7 +798,7 @@ def _ik_input(
     skeleton: Skeleton, data: Trial | tuple[np.ndarray, np.ndarray] | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float | None]:
     """(x (..., F, M, 3) zero-filled, mask (..., F, M), rate) in the skeleton's marker order."""
-    from ..io._trial import Trial
+    from ..io import Trial
 
     if isinstance(data, Trial):
         missing = [lab for lab in skeleton.marker_labels if lab not in data.labels]
@@ -901,7 +901,7 @@ def inverse_kinematics(
     Parameters
     ----------
     skeleton
-        From :func:`jaxskel.fit_rigid`.
+        From :func:`jaxskel.skeleton.fit_rigid`.
     data
         A :class:`Trial` (markers matched by label), an array (F, M, 3) or
         (trials, F, M, 3) in the skeleton's marker order with NaN for missing samples,

@@ -1,6 +1,6 @@
 """Batched inverse kinematics: frames on the last axis, O(S) tree solve per step.
 
-This is the fast path of :func:`jaxskel.inverse_kinematics`. It minimises the energy of
+This is the fast path of :func:`jaxskel.skeleton.inverse_kinematics`. It minimises the energy of
 :mod:`jaxskel.skeleton._ik` (markers plus the relative-rotation prior) over the same unknowns
 (root translation, global segment orientations), from the same kind of Horn start, but
 is organised for a CPU:
@@ -53,9 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._runtime import program_cache as _program_cache
 from .._math.padding import bucket_size
 from .._math.sym3 import SYM, UPPER, sym_apply, sym_inverse
+from .._runtime import program_cache as _program_cache
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
 
@@ -264,7 +264,7 @@ def solver_shape(marker_segment: np.ndarray, edges: np.ndarray, n_markers: int) 
     The refinement (:mod:`jaxskel.skeleton._rigid_fit`) solves the IK with each joint centre as one
     more observed point, fixed at the proximal end of the joint's child segment, so each
     non-root segment needs one slot more than it has markers and the input one column
-    per joint more. :func:`jaxskel.inverse_kinematics` pads its columns the same way (free)
+    per joint more. :func:`jaxskel.skeleton.inverse_kinematics` pads its columns the same way (free)
     and, given ``slots`` (as :func:`jaxskel.fit_skeleton` does), reserves that slot too,
     so both run *one* compiled :func:`solve_chunk`: compiling it takes ~6 s on two CPU
     cores, the idle slot costs the IK ~20 % per frame. Returns the slot count per

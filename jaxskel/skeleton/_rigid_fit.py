@@ -42,7 +42,7 @@ skeleton, in two steps.
    swaps, jumps, a marker knocked loose) are left out. At most ``max_frames`` frames,
    spread evenly over the trial, are used.
 
-Segment frames (the convention of :class:`Skeleton`, :class:`jaxskel.Motion` and the BVH
+Segment frames (the convention of :class:`Skeleton`, :class:`jaxskel.skeleton.Motion` and the BVH
 export): the origin of a segment is its proximal joint (the joint to its parent), so
 ``joint_offsets[:, 1]`` is zero; the root's origin is the centroid of its markers. The
 axes are parallel to the world axes at the *rest frame* ``diagnostics["rest_frame"]``
@@ -68,9 +68,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._math.anderson import anderson_step
 from .._errors import ConvergenceWarning, DegenerateMotionError, InputError
+from .._math.anderson import anderson_step
 from .._math.geometry import quat_to_matrix
+from .._math.linalg import spd_solve
+from .._math.padding import bucket_size
+from .._math.procrustes import procrustes
+from ..io import Trial
 from ._hinge_centres import MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, hinge_axes, hinge_shifts
 from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
@@ -83,10 +87,6 @@ from ._ik import (
     kinematic_chain,
 )
 from ._ik_batch import batch_model, solve, solver_shape
-from .._math.linalg import spd_solve
-from .._math.padding import bucket_size
-from ..io._trial import Trial
-from .._math.procrustes import procrustes
 
 __all__ = ["Skeleton", "fit_rigid", "validate_tree"]
 

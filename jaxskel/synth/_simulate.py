@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from .._errors import InputError
-from ..io._trial import UP_AXES, Trial, rotation_between_axes
+from ..io import UP_AXES, Trial, rotation_between_axes
 from ._bodies import Body
 from ._corrupt import (
     gap_mask,

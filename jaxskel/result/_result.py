@@ -1,0 +1,352 @@
+"""`SkeletonResult`: everything one fit produced, with its summary and its exports."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._errors import InputError
+from ..clean import CleaningReport
+from ..io import Trial
+from ..joints import Topology
+from ..segment import Segmentation
+from ._summary import (
+    bone_bound,
+    is_loose,
+    near_tie_text,
+    nonrigid_group_hint,
+    nonrigid_group_texts,
+    nonrigid_text,
+    pose_exchange_text,
+    resolution_cell,
+    tree_lines,
+    undetermined_lines,
+    untested_text,
+)
+
+__all__ = ["SkeletonResult"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SkeletonResult:
+    """Everything :func:`fit_skeleton` produced, stage by stage.
+
+    Attributes
+    ----------
+    input_labels
+        Marker labels of the input (after combining trials), as given.
+    trial
+        The cleaned (and label-merged) trial every later stage used.
+    cleaning
+        :class:`CleaningReport` (``None`` when cleaning was switched off).
+    label_mapping
+        Result of passive-marker merging, or ``None``.
+    segmentation, topology
+        Stage outputs (:class:`Segmentation`, :class:`Topology`).
+    skeleton, motion
+        Rigid skeleton and inverse-kinematics motion (``None`` when switched off).
+    segment_names
+        (S,) unique readable names, from the segments' marker labels unless given
+        (:mod:`jaxskel.segment._names`: ``RTH`` for ``RTHPA, RTHPP, RTHDP, RTHDA``,
+        ``LFWT+RFWT+LBWT+RBWT`` where the labels share no prefix). Display only: no stage
+        of the fit reads them. Joints are named ``parent-child`` from them.
+    trial_bounds
+        Frame range of each input trial in the combined recording.
+    timings
+        Seconds per stage.
+    settings
+        The arguments used.
+    """
+
+    input_labels: tuple[str, ...]
+    trial: Trial
+    cleaning: CleaningReport | None
+    label_mapping: Any
+    segmentation: Segmentation
+    topology: Topology
+    skeleton: Any
+    motion: Any
+    segment_names: tuple[str, ...]
+    trial_bounds: tuple[tuple[int, int], ...]
+    timings: dict[str, float]
+    settings: dict[str, Any]
+
+    # ------------------------------------------------------------- derived
+    @property
+    def n_segments(self) -> int:
+        return self.segmentation.n_segments
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self.topology.edges
+
+    @property
+    def joint_positions(self) -> np.ndarray:
+        """(F, J, 3) joint centres per frame (row j <-> edge j)."""
+        return self.topology.joint_positions
+
+    def marker_segment_input(self) -> np.ndarray:
+        """Segment of every *input* marker (-1 if dropped by cleaning; a merged or duplicate
+        label has its physical marker's segment)."""
+        index = {lab: i for i, lab in enumerate(self.segmentation.labels)}
+        phys = self.physical_input()
+        out = np.full(len(self.input_labels), -1, dtype=int)
+        merged_labels = self.trial.labels
+        for i, lab in enumerate(self.input_labels):
+            target = merged_labels[phys[i]] if phys[i] >= 0 else None
+            if target is not None and target in index:
+                out[i] = self.segmentation.marker_segment[index[target]]
+        return out
+
+    def physical_input(self) -> np.ndarray:
+        """Physical-marker index (into ``trial.labels``) of every input label, -1 if none.
+
+        A duplicate label merged by cleaning maps to the marker it was merged into."""
+        index = {lab: i for i, lab in enumerate(self.trial.labels)}
+        copy_of = self.cleaning.duplicates if self.cleaning is not None else {}
+
+        def find(lab: str) -> int:
+            while lab not in index and lab in copy_of:
+                lab = copy_of[lab]
+            return index.get(lab, -1)
+
+        if self.label_mapping is not None:
+            # The mapping covers the labels that reached the merge; cleaning may have
+            # dropped others first (never seen, or a copy of another label).
+            merged = tuple(self.label_mapping.physical_labels)
+            via = {lab: (merged[p] if p >= 0 else None)
+                   for lab, p in zip(self.label_mapping.labels, np.asarray(self.label_mapping.physical).tolist())}
+
+            def find_merged(lab: str) -> int:
+                while lab not in via and lab in copy_of:
+                    lab = copy_of[lab]
+                target = via.get(lab)
+                return find(target) if target is not None else -1
+
+            return np.array([find_merged(lab) for lab in self.input_labels], dtype=int)
+        return np.array([find(lab) for lab in self.input_labels], dtype=int)
+
+    def bone_lengths(self) -> dict[str, float]:
+        """Distance between the two joints of every segment with two or more joints.
+
+        Taken from the rigid skeleton when it exists, else the median over frames
+        of the per-frame joint distances.
+        """
+        out: dict[str, float] = {}
+        if self.skeleton is not None:
+            for (j0, j1), length in zip(self.skeleton.bones, self.skeleton.bone_lengths):
+                out[self._bone_name(j0, j1)] = float(length)
+            return out
+        jp = self.joint_positions
+        edges = self.edges
+        for s in range(self.n_segments):
+            js = [j for j, (p, c) in enumerate(edges) if p == s or c == s]
+            for a in range(len(js)):
+                for b in range(a + 1, len(js)):
+                    d = np.linalg.norm(jp[:, js[a]] - jp[:, js[b]], axis=-1)
+                    if np.isfinite(d).any():
+                        out[self._bone_name(js[a], js[b])] = float(np.nanmedian(d))
+        return out
+
+    def _bone_name(self, j0: int, j1: int) -> str:
+        """``"B (A-C)"``: segment B between its joints with segments A and C."""
+        names = self.segment_names
+        e0, e1 = {int(v) for v in self.edges[j0]}, {int(v) for v in self.edges[j1]}
+        shared = (e0 & e1).pop()
+        return f"{names[shared]} ({names[(e0 - {shared}).pop()]}-{names[(e1 - {shared}).pop()]})"
+
+    def untested_joints(self) -> list:
+        """Sparsely marked segments whose likelier joint could not be tested
+        (:func:`jaxskel.untested_joints`)."""
+        from ..joints import untested_joints
+
+        return untested_joints(self.segmentation, self.topology)
+
+    def undetermined_joints(self) -> list:
+        """Tree joints whose centre the recording fixes only to within more than 10 cm
+        (:func:`jaxskel.undetermined_joints`); empty without the rigid skeleton."""
+        from ..joints import undetermined_joints
+
+        return undetermined_joints(self.skeleton) if self.skeleton is not None else []
+
+    def joint_resolutions(self) -> np.ndarray:
+        """(J,) metres: how far each joint centre can move along its least determined
+        direction before the fit's misfit doubles (:mod:`jaxskel.joints._determination`); NaN
+        where unknown (no segment of the joint with three markers, no rigid skeleton)."""
+        from ..joints import joint_resolution
+
+        if self.skeleton is None:
+            return np.full(len(self.edges), np.nan)
+        return joint_resolution(self.skeleton)
+
+    def bone_uncertainties(self) -> dict[str, float]:
+        """How far each bone length of :meth:`bone_lengths` can move with its joints inside
+        their resolutions (metres, NaN where unknown; :func:`jaxskel.bone_uncertainty`).
+        Empty without the rigid skeleton."""
+        if self.skeleton is None:
+            return {}
+        from ..joints import bone_uncertainty
+
+        spread = bone_uncertainty(self.skeleton)
+        return {self._bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
+
+    def near_ties(self, z: float = 2.0) -> list:
+        """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
+        the tree would joint instead (:func:`jaxskel.near_ties`)."""
+        from ..joints import near_ties
+
+        return near_ties(self.trial, self.segmentation, self.topology, z=z)
+
+    def joint_name(self, j: int) -> str:
+        p, c = self.edges[j]
+        return f"{self.segment_names[p]}-{self.segment_names[c]}"
+
+    def summary(self) -> str:
+        """Segments with their markers, joints with their costs, how the tree was chosen and
+        its runner-up, bone lengths. A joint the recording fixes only to within more than
+        10 cm reads ``undetermined``, with the motion that would fix it, and so does the
+        bound of a bone ending at it (:mod:`jaxskel.result._summary`)."""
+        lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
+        seg = self.segmentation
+        gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
+        rule = {
+            "given": "given",
+            "eigengap": "eigengap",
+            "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
+            f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
+            "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
+            f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
+        }[seg.count_rule]
+        lines.append(
+            f"segment count: {rule}; largest eigengaps after k = {gaps}; "
+            f"white noise {1e3 * seg.white_noise:.2f} mm (taken out of A)"
+        )
+        groups = nonrigid_group_texts(seg, self.segment_names)
+        if groups:
+            lines += [f"  {text}" for text in groups] + [f"  {nonrigid_group_hint(seg)}"]
+        if self.cleaning is not None and self.cleaning.duplicates:
+            pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
+            lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
+        width = max(map(len, self.segment_names), default=0)
+        for name, group in zip(self.segment_names, self.segmentation.groups):
+            lines.append(f"  {name:>{width}}: {', '.join(group)}")
+        anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
+        resolution = self.joint_resolutions()
+        lines += self._joint_lines(anchored, resolution)
+        lines += tree_lines(self.topology, self.segment_names, self.settings, self.segmentation)
+        loose = [j for j in range(len(self.edges)) if is_loose(resolution[j])]
+        if loose:
+            lines += [f"  {line}" for line in undetermined_lines(loose, self.segment_names, self.skeleton)]
+        for u in self.untested_joints():
+            lines.append(untested_text(u, self.segment_names, self.segmentation.segment_sizes))
+        for exchange in self.topology.pose_exchanges:
+            lines.append(f"  {pose_exchange_text(exchange, self.segment_names)}")
+        for tie in self.near_ties():
+            lines.append(f"  {near_tie_text(tie, self.segment_names)}")
+        nonrigid = nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
+        if nonrigid is not None:
+            lines.append(f"  {nonrigid}")
+        lines += self._bone_lines(resolution)
+        if self.motion is not None:
+            rms = np.asarray(self.motion.marker_rms)
+            lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
+            cutoff = self.motion.lowpass_hz
+            if cutoff is not None:
+                done = cutoff[np.isfinite(cutoff)]
+                lines.append(
+                    f"IK markers low-passed at {np.min(done):.1f}-{np.max(done):.1f} Hz (median {np.median(done):.1f}), "
+                    f"{len(cutoff) - len(done)} of {len(cutoff)} as measured"
+                    if len(done) else f"IK markers as measured (no white noise to filter in any of {len(cutoff)})"
+                )
+        return "\n".join(lines)
+
+    __str__ = summary
+
+    def _joint_lines(self, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
+        """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
+        from ..joints import MIN_EXERCISE_DEG
+
+        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
+        names = [self.joint_name(j) for j in range(len(self.edges))]
+        width = max(map(len, names), default=0)
+        t = self.topology
+        lines = ["joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
+        for j, name in enumerate(names):
+            lines.append(
+                f"  {name:>{width}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
+                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {resolution_cell(resolution[j])}"
+                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
+            )
+        return lines
+
+    def _bone_lines(self, resolution: np.ndarray) -> list[str]:
+        """The summary's bone table: lengths, and bounds where the rigid skeleton has them."""
+        bones = self.bone_lengths()
+        if not bones:
+            return []
+        if self.skeleton is None:
+            return ["bone lengths [m]:"] + [f"  {name}: {length:.4f}" for name, length in bones.items()]
+        from ..joints import bone_uncertainty
+
+        loose = any(is_loose(resolution[j]) for j in np.ravel(self.skeleton.bones))
+        lines = [
+            "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; >= where one "
+            f"joint's is unknown{', undetermined where one joint is' if loose else ''}):"
+        ]
+        spread = bone_uncertainty(self.skeleton)
+        for (j0, j1), bound in zip(self.skeleton.bones, spread):
+            name = self._bone_name(j0, j1)
+            lines.append(f"  {name}: {bones[name]:.4f}  {bone_bound((j0, j1), resolution, bound, self.joint_name)}")
+        return lines
+
+    def save(self, path: str, *, overwrite: bool = False, extra_groups: dict[str, Any] | None = None) -> None:
+        """Write the HDF5 result file (schema in the README), atomically.
+
+        ``extra_groups`` maps group names to functions filling them (used for
+        ``/normalized`` and ``/parameters``).
+        """
+        from ..result._format import save_result
+
+        save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
+
+    def export_bvh(
+        self,
+        path: str,
+        *,
+        trial: int | None = None,
+        overwrite: bool = False,
+        units: str = "m",
+        rotation_order: str = "ZXY",
+    ) -> Path:
+        """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.export_bvh`),
+        segments named by :attr:`segment_names`, at the recording's frame rate.
+
+        ``trial`` picks one input trial of a joint fit (its frames, ``trial_bounds``);
+        ``None`` writes every frame of the fitted recording, the trials one after another.
+        Returns the path written.
+        """
+        if self.skeleton is None or self.motion is None:
+            raise InputError(
+                "export_bvh needs the rigid skeleton and its motion; fit with rigid=True and ik=True (the defaults)"
+            )
+        motion = self.motion
+        if trial is not None:
+            n = len(self.trial_bounds)
+            if isinstance(trial, bool) or not isinstance(trial, (int, np.integer)) or not 0 <= trial < n:
+                raise InputError(f"trial must be an index 0..{n - 1} of the {n} fitted trial(s), got {trial!r}")
+            start, stop = self.trial_bounds[int(trial)]
+            frames = motion.n_frames
+            motion = dataclasses.replace(motion, **{
+                f.name: getattr(motion, f.name)[start:stop]
+                for f in dataclasses.fields(motion)
+                if isinstance(getattr(motion, f.name), np.ndarray) and getattr(motion, f.name).shape[:1] == (frames,)
+            })  # fmt: skip
+        from ..result._bvh import export_bvh
+
+        return export_bvh(
+            self.skeleton, motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
+            labels=self.segment_names, rotation_order=rotation_order,
+        )
