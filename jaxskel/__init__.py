@@ -54,6 +54,13 @@ _LAZY = {
     # the pipeline and its result
     "fit_skeleton": "pipeline",
     "fit_batch": "pipeline",
+    "FitOptions": "pipeline",
+    "CleanOptions": "pipeline",
+    "LabelOptions": "pipeline",
+    "SegmentOptions": "pipeline",
+    "JointOptions": "pipeline",
+    "SkeletonOptions": "pipeline",
+    "MotionOptions": "pipeline",
     "BatchResult": "pipeline",
     "TrialOutcome": "pipeline",
     "SkeletonResult": "result",
@@ -84,4 +91,4 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # pragma: no cover - for static tooling only
     from ._errors import *  # noqa: F403
-    from .io import Trial
+    from .io import Trial  # noqa: F401

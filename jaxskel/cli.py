@@ -18,11 +18,83 @@ import os
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ._runtime.compile_cache import enable_compile_cache
+from .pipeline._options import Choice, FitOptions, SettingInfo
 
 __all__ = ["main"]
+
+
+# ------------------------------------------------------------ settings as flags
+def _flag(info: SettingInfo, default: Any) -> str:
+    """A setting's flag: as declared, else ``--<flat-name>`` (``--no-...`` for a switch on by default)."""
+    if info.flag:
+        return info.flag
+    name = info.flat.replace("_", "-")
+    return f"--no-{name}" if default is True else f"--{name}"
+
+
+def _value_type(info: SettingInfo) -> Callable[[str], Any]:
+    """The argparse ``type`` of a non-switch setting: ``none``/``auto`` where allowed, else a number or text
+    (the options object validates the value)."""
+    words = dict(info.cli_values or {})
+
+    def parse(text: str) -> Any:
+        low = text.lower()
+        if low in words:
+            return words[low]
+        if low == "none" and info.constraint.accepts(None):
+            return None
+        if low == "auto" and info.constraint.accepts("auto"):
+            return "auto"
+        try:
+            number = float(text)
+        except ValueError:
+            if info.constraint.accepts(text):
+                return text
+            raise argparse.ArgumentTypeError(
+                f"{info.flat} must be {info.constraint.describe()}, got {text!r}"
+            ) from None
+        return int(number) if number.is_integer() and info.constraint.accepts(int(number)) else number
+
+    return parse
+
+
+def add_setting_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per setting of :class:`jaxskel.FitOptions`, with its default and doc."""
+    main = parser.add_argument_group("fit settings")
+    advanced = parser.add_argument_group("advanced fit settings (jaxskel.FitOptions)")
+    for _group, _field, info, default in FitOptions.settings():
+        where = advanced if info.advanced else main
+        flag = _flag(info, default)
+        if isinstance(default, bool) and info.cli_values is None:
+            where.add_argument(flag, dest=info.flat, action="store_false" if default else "store_true",
+                               default=default, help=f"turn off: {info.doc}" if default else info.doc)
+            continue
+        if info.cli_values:  # spelled as words on the command line, mapped by options_from_args
+            shown = {v: k for k, v in info.cli_values.items()}[default]
+            where.add_argument(flag, dest=info.flat, choices=list(info.cli_values), default=shown,
+                               help=f"{info.doc} (default: {shown})")
+            continue
+        choices = None
+        if isinstance(info.constraint, Choice):
+            choices = [v for v in info.constraint.values if isinstance(v, str)]
+        where.add_argument(flag, dest=info.flat, type=_value_type(info), default=default, choices=choices,
+                           metavar=None if choices else info.flat.upper(),
+                           help=f"{info.doc} (default: {'none' if default is None else default})")
+
+
+def options_from_args(args: argparse.Namespace) -> FitOptions:
+    """The :class:`jaxskel.FitOptions` the flags give (defaults where a namespace lacks one)."""
+    given = {}
+    for _, _, info, _ in FitOptions.settings():
+        if hasattr(args, info.flat):
+            value = getattr(args, info.flat)
+            given[info.flat] = info.cli_values[value] if info.cli_values and isinstance(value, str) else value
+    return FitOptions.from_settings(**given)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -33,28 +105,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="store_true", help="print the version and exit")
     sub = p.add_subparsers(dest="command")
 
-    def fit_options(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
-        sp.add_argument("--root", default=None, help="root segment index or a marker label on it")
-        sp.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto",
-                        help="merge relabelled passive markers (default: auto)")
-        sp.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
-        sp.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
-        sp.add_argument("--method", choices=["lm", "ncg"], default="lm", help="joint solver (default: lm)")
-        sp.add_argument("--hinge-centres", choices=["limb_plane", "prior"], default="limb_plane",
-                        help="a hinge's centre along its axis: in the plane of its neighbouring joints "
-                             "(default) or where the distance prior puts it (the paper)")
-        sp.add_argument("--joint-centres", choices=["anchored", "per_frame"], default="anchored",
-                        help="joint centres the rigid skeleton is pinned to: refitted fixed in a segment's "
-                             "frame along the directions the data resolve (default), or one per frame (the paper)")
-        sp.add_argument("--no-pose-check", action="store_true",
-                        help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
-                             "segments as attachments); by default a joint the segments' poses reject (a centre "
-                             "fixed in both, or a sparse segment's markers about a centre fixed in the other) "
-                             "is exchanged")
-        sp.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
-                        help="low-pass filter of the markers the IK poses: a cutoff per marker from its own "
-                             "noise (auto, default), none, or a cutoff in Hz")
+    def output_options(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
         sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
@@ -62,12 +113,12 @@ def _parser() -> argparse.ArgumentParser:
                         help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
         sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
         sp.add_argument("--quiet", action="store_true", help="no progress bar or summary")
-        sp.add_argument("--seed", type=int, default=0)
 
     fit = sub.add_parser("fit", help="fit a skeleton to one or more recordings of one subject")
     fit.add_argument("inputs", nargs="+", type=Path, help=".c3d, .trc, .csv or .h5 recordings")
     fit.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5)")
-    fit_options(fit)
+    output_options(fit)
+    add_setting_flags(fit)
 
     demo = sub.add_parser("demo", help="fit the bundled real recording and write results")
     demo.add_argument("-o", "--outdir", type=Path, default=Path("jaxskel-demo"), help="output folder")
@@ -92,20 +143,9 @@ def _parser() -> argparse.ArgumentParser:
                        "segments of A and B; ';' averages several (repeatable)")
     batch.add_argument("--plot-bones", type=Path, default=None,
                        help="plot the first two --bone lengths per subject (Kirk et al. 2005, Fig. 5)")
-    batch.add_argument("--segments", type=int, default=None, help="number of segments (default: eigengap)")
-    batch.add_argument("--root", default=None, help="root segment index or a marker label on it")
-    batch.add_argument("--merge-labels", choices=["auto", "yes", "no"], default="auto")
-    batch.add_argument("--no-clean", action="store_true", help="skip gap-edge trimming and jump rejection")
-    batch.add_argument("--no-rigid", action="store_true", help="stop after the joint fit (no rigid skeleton / IK)")
-    batch.add_argument("--method", choices=["lm", "ncg"], default="lm")
-    batch.add_argument("--seed", type=int, default=0)
-    batch.add_argument("--ik-lowpass", type=_cutoff_arg, default="auto", metavar="auto|none|HZ",
-                       help="low-pass filter of the markers the IK poses (default: auto, from each marker's noise)")
-    batch.add_argument("--no-pose-check", action="store_true",
-                       help="keep the joint costs' spanning tree as it is (the paper, with one-marker "
-                            "segments as attachments)")
     batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_setting_flags(batch)
 
     info = sub.add_parser("info", help="describe a recording or a result file")
     info.add_argument("file", type=Path)
@@ -147,23 +187,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     trials = [jaxskel.load(p) for p in inputs]
-    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
-    result = jaxskel.fit_skeleton(
-        trials,
-        args.segments,
-        root=_root_arg(args.root),
-        clean_data=not args.no_clean,
-        merge_labels=merge,
-        method=args.method,
-        rigid=not args.no_rigid,
-        ik=not args.no_rigid,
-        seed=args.seed,
-        progress=not quiet,
-        hinge_centres=getattr(args, "hinge_centres", "limb_plane"),
-        joint_centres=getattr(args, "joint_centres", "anchored"),
-        ik_lowpass=getattr(args, "ik_lowpass", "auto"),
-        pose_check=not getattr(args, "no_pose_check", False),
-    )
+    result = jaxskel.fit_skeleton(trials, options=options_from_args(args), progress=not quiet)
     extra_groups = {}
     if args.parameterize:
         if result.motion is None:
@@ -225,14 +249,10 @@ def _fit_batch(args: argparse.Namespace) -> int:
         cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
                                dashboard_address=None)
         scheduler = cluster.scheduler_address
-    merge = {"auto": "auto", "yes": True, "no": False}[args.merge_labels]
     try:
         batch = jaxskel.fit_batch(
-            args.directory, args.outdir, n_segments=args.segments, root=_root_arg(args.root),
-            clean_data=not args.no_clean, merge_labels=merge, method=args.method, rigid=not args.no_rigid,
-            ik=not args.no_rigid, seed=args.seed, bones=bones, batch_size=args.batch_size, jobs=args.jobs,
-            scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet, ik_lowpass=args.ik_lowpass,
-            pose_check=not args.no_pose_check,
+            args.directory, args.outdir, options=options_from_args(args), bones=bones, batch_size=args.batch_size,
+            jobs=args.jobs, scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
         )
     finally:
         if cluster is not None:
@@ -249,25 +269,6 @@ def _fit_batch(args: argparse.Namespace) -> int:
     return 1 if batch.failed else 0
 
 
-def _cutoff_arg(text: str) -> float | str | None:
-    """``--ik-lowpass``: ``auto``, ``none`` or a positive frequency in Hz."""
-    if text.lower() in ("auto", "none"):
-        return None if text.lower() == "none" else "auto"
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected auto, none or a cutoff in Hz, got {text!r}")
-    return value
-
-
-def _root_arg(root: str | None) -> int | str | None:
-    if root is None:
-        return None
-    return int(root) if root.lstrip("-").isdigit() else root
-
-
 def _up(axis: str) -> str:
     return "z" if axis == "unknown" else axis
 
@@ -278,10 +279,9 @@ def _demo(args: argparse.Namespace) -> int:
     outdir = args.outdir
     outdir.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(
-        segments=None, root=None, merge_labels="auto", no_clean=False, no_rigid=False, method="lm",
         plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
-        parameterize=False, overwrite=True, quiet=args.quiet, seed=0,
-    )
+        parameterize=False, overwrite=True, quiet=args.quiet,
+    )  # and every setting at its default (options_from_args)
     if not args.quiet:
         print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")
     return _fit([sample_path()], outdir / "result.h5", ns)

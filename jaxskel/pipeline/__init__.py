@@ -1,5 +1,5 @@
-"""The whole chain: one fit (fit_skeleton), many trials (fit_batch, optionally on Dask),
-from one options object.
+"""The whole chain, from one options object: one fit (fit_skeleton), many trials
+(fit_batch, optionally on Dask), and the stage plan both run.
 """
 
 from __future__ import annotations
@@ -7,9 +7,17 @@ from __future__ import annotations
 from ._batch import BatchResult, TrialOutcome, fit_batch
 from ._batch_io import bone_length, plot_bone_lengths
 from ._fit import fit_skeleton
+from ._options import (
+    CleanOptions, FitOptions, JointOptions, LabelOptions, MotionOptions, SegmentOptions, SettingInfo, SkeletonOptions,
+)
+from ._plan import PreparedFit, StagePlan
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
 from ._batch_io import parse_bone_spec
 
-__all__ = ["BatchResult", "TrialOutcome", "bone_length", "fit_batch", "fit_skeleton", "plot_bone_lengths"]
+__all__ = [
+    "BatchResult", "CleanOptions", "FitOptions", "JointOptions", "LabelOptions", "MotionOptions", "PreparedFit",
+    "SegmentOptions", "SettingInfo", "SkeletonOptions", "StagePlan", "TrialOutcome", "bone_length", "fit_batch",
+    "fit_skeleton", "plot_bone_lengths",
+]

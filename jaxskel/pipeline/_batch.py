@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import math
 import os
 import threading
@@ -55,8 +54,8 @@ from typing import Any
 
 from .._errors import InputError, JaxskelError
 from .._runtime.map_limit import near_map_limit, release_programs_near_map_limit
-from ..clean import check_cutoff
 from ..io import Trial
+from ..joints import Topology
 from ._batch_io import (
     BoneSpec,
     _normalise_specs,
@@ -67,6 +66,9 @@ from ._batch_io import (
     summary_row,
     write_summary,
 )
+from ._fit import resolve_options
+from ._options import FitOptions
+from ._plan import PreparedFit, StagePlan
 
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
 
@@ -280,30 +282,27 @@ def _failed(item: _Item, exc: BaseException, seconds: float) -> TrialOutcome:
 class _Work:
     item: _Item
     t0: float
-    prep: Any = None
-    pairs: Any = None  # AllPairsProblem
-    tree: Any = None  # TreeProblem
-    topology: Any = None
+    prep: PreparedFit | None = None
+    pairs: Any = None  # the joints stage's AllPairsProblem, freed once solved
+    tree: Any = None  # the joints stage's TreeProblem, freed once solved
+    topology: Topology | None = None
 
 
-def _prepare(item: _Item, options: Mapping[str, Any]) -> _Work:
+def _prepare(item: _Item, options: FitOptions) -> _Work:
     from ..io import load
     from ..joints import all_pairs_problem
-    from ._fit import prepare_fit
 
     work = _Work(item, time.perf_counter())
     t0 = time.perf_counter()
     trials = [load(v) if isinstance(v, (str, os.PathLike)) else v for v in item.inputs]
     load_s = time.perf_counter() - t0
-    work.prep = prepare_fit(
-        trials, options["n_segments"], clean_data=options["clean_data"], merge_labels=options["merge_labels"],
-        seed=options["seed"], settings=dict(options), device_lock=DEVICE_LOCK,
-    )
+    plan = StagePlan(options, device_lock=DEVICE_LOCK)
+    work.prep = plan.prepare(trials)
     work.prep.timings["load"] = load_s
-    with work.prep.stage("joint costs"):
+    j = options.joints
+    with plan.stage(work.prep, "joint costs"):
         work.pairs = all_pairs_problem(
-            work.prep.trial, work.prep.segmentation, alpha=options["alpha"],
-            max_frames=options["topology_frames"], method=options["method"],
+            work.prep.trial, work.prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames, method=j.method,
         )
     return work
 
@@ -324,7 +323,7 @@ def _shared(works: list[_Work], solve: Callable[[list[Any]], list[Any]], attr: s
         return out
 
 
-def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, fail: Callable) -> list[_Work]:
+def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Callable) -> list[_Work]:
     """All-pairs costs, then tree joints, of several prepared trials together."""
     from ..joints import (
         pair_costs_from,
@@ -334,6 +333,7 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
         tree_problem,
     )
 
+    plan, j = StagePlan(options), options.joints
     t0 = time.perf_counter()
     with DEVICE_LOCK:
         sols = _shared(works, lambda ps: solve_pairs(ps, devices=devices), "pairs", fail)
@@ -343,15 +343,14 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
         if sol is None:
             continue
         try:
-            with w.prep.stage("joint costs"):
+            with plan.stage(w.prep, "joint costs"):
                 pair_costs = pair_costs_from(w.pairs, sol)
             # the pose check inside runs JAX code (segment poses): under the lock, like every
             # other JAX stage, or it overlaps a finishing trial's programs and both hang
-            with w.prep.stage("tree joints"), DEVICE_LOCK:
+            with plan.stage(w.prep, "tree joints"), DEVICE_LOCK:
                 w.tree = tree_problem(
-                    w.prep.trial, w.prep.segmentation, pair_costs, root=options["root"], alpha=options["alpha"],
-                    alpha_tree=options["alpha_tree"], method=options["method"],
-                    pose_check=w.prep.settings.get("pose_check", True),
+                    w.prep.trial, w.prep.segmentation, pair_costs, root=j.root, alpha=j.alpha,
+                    alpha_tree=j.alpha_tree, method=j.method, pose_check=j.pose_check,
                 )
             w.prep.timings["joint costs"] += share
             w.pairs = None  # free the padded arrays
@@ -376,33 +375,14 @@ def _solve_batch(works: list[_Work], options: Mapping[str, Any], devices: Any, f
     return done
 
 
-def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpec], sig: str | None,
+def _finish(work: _Work, options: FitOptions, bones: Mapping[str, BoneSpec], sig: str | None,
             keep: bool) -> TrialOutcome:
-    from ._fit import (
-        _confirm_merges_and_refit,
-        add_motion,
-        finish_fit,
-        fit_joints_and_skeleton,
-    )
-    from ._split_refit import fit_growing_count
-
     item, prep = work.item, work.prep
-    # as fit_skeleton: a segment the rigid skeleton cannot hold grows the automatic count, and
-    # the skeleton checks the label merges; such refits run unbatched (joint and skeleton
-    # stages of this one trial)
-    refit = functools.partial(
-        fit_joints_and_skeleton, alpha=options["alpha"], alpha_tree=options["alpha_tree"],
-        method=options["method"], root=options["root"], topology_frames=options["topology_frames"],
-    )
+    # the rest of the plan, as fit_skeleton runs it (a segment the rigid skeleton cannot hold
+    # grows the automatic count, and the skeleton checks the label merges; such refits run
+    # unbatched, this one trial's joint and skeleton stages)
     with DEVICE_LOCK:
-        result = fit_growing_count(
-            prep, lambda p: finish_fit(p, work.topology), refit, add_motion, seed=options["seed"], segment_kwargs=None,
-        )
-        if options["confirm_merges"] and prep.label_mapping is not None and result.motion is not None:
-            result = _confirm_merges_and_refit(
-                prep, result, refit, min_run_s=0.5 if options["clean_data"] else None,
-                n_segments=options["n_segments"], seed=options["seed"], segment_kwargs=None,
-            )
+        result = StagePlan(options).complete(prep, work.topology)
     seconds = sum(result.timings.values())  # this trial's share of the work, not its latency
     row = summary_row(
         result, name=item.name, subject=item.subject, inputs=item.inputs_text(),
@@ -416,7 +396,7 @@ def _finish(work: _Work, options: Mapping[str, Any], bones: Mapping[str, BoneSpe
 
 def run_local(
     items: Sequence[_Item],
-    options: Mapping[str, Any],
+    options: FitOptions,
     *,
     bones: Mapping[str, BoneSpec],
     signatures: Mapping[int, str],
@@ -502,20 +482,7 @@ def fit_batch(
     trials: Any,
     outdir: str | os.PathLike[str] | None = None,
     *,
-    n_segments: int | None = None,
-    root: int | str | None = None,
-    clean_data: bool = True,
-    merge_labels: bool | str = "auto",
-    alpha: float = 1e-5,
-    alpha_tree: float | str = "auto",
-    method: str = "lm",
-    topology_frames: int = 300,
-    rigid: bool = True,
-    ik: bool = True,
-    seed: int = 0,
-    confirm_merges: bool = True,
-    ik_lowpass: float | str | None = "auto",
-    pose_check: bool = True,
+    options: FitOptions | None = None,
     names: Sequence[str] | None = None,
     subjects: Sequence[str] | None = None,
     bones: Mapping[str, Any] | None = None,
@@ -527,6 +494,7 @@ def fit_batch(
     keep_results: bool | None = None,
     summary: str | None = "summary.csv",
     progress: bool = False,
+    **settings: Any,
 ) -> BatchResult:
     """Fit a skeleton to each of many trials: batched, overlapped, resumable.
 
@@ -545,8 +513,9 @@ def fit_batch(
     outdir
         Folder for one result file per trial (``<name>.h5``, sub-folders kept) and
         the summary table. Without it, nothing is written and results are returned.
-    n_segments, root, clean_data, merge_labels, alpha, alpha_tree, method, topology_frames, rigid, ik, seed, confirm_merges, ik_lowpass, pose_check
-        As in :func:`jaxskel.fit_skeleton`, the same for every trial.
+    options, **settings
+        Every setting of the fit, the same for every trial: a :class:`jaxskel.FitOptions`
+        and flat overrides by name, as in :func:`jaxskel.fit_skeleton`.
     names, subjects
         Per-item names (result file names) and subject labels (summary column,
         plot groups). Defaults: the path relative to the folder without suffix, and
@@ -585,9 +554,7 @@ def fit_batch(
     out = None if outdir is None else Path(outdir)
     if scheduler is not None and out is None:
         raise InputError("fit_batch with a scheduler needs outdir: the workers write the result files there")
-    if method not in ("lm", "ncg"):
-        raise InputError(f"method must be 'lm' or 'ncg', got {method!r}")
-    check_cutoff(ik_lowpass, allow_none=True)
+    options = resolve_options(options, settings)
     if int(batch_size) < 1 or int(jobs) < 1:
         raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
     if out is not None:
@@ -596,11 +563,6 @@ def fit_batch(
         out.mkdir(parents=True, exist_ok=True)
     items = _resolve_items(trials, out, names, subjects)
     specs = _normalise_specs(bones)
-    options = dict(
-        n_segments=n_segments, root=root, clean_data=clean_data, merge_labels=merge_labels, alpha=alpha,
-        alpha_tree=alpha_tree, method=method, topology_frames=topology_frames, rigid=rigid, ik=ik, seed=seed,
-        confirm_merges=confirm_merges, ik_lowpass=ik_lowpass, pose_check=bool(pose_check),
-    )
     keep = (out is None) if keep_results is None else bool(keep_results)
 
     outcomes: dict[int, TrialOutcome] = {}
@@ -633,7 +595,7 @@ def fit_batch(
             todo.append(item)
             continue
         try:
-            signatures[item.index] = signature(item.inputs, options)
+            signatures[item.index] = signature(item.inputs, options.as_flat())
         except OSError as exc:
             on_outcome(item, _failed(item, InputError(f"{item.inputs_text()}: cannot read ({exc})"), 0.0))
             continue

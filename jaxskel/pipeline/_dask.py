@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from .._errors import InputError
+from ._options import FitOptions
 from ..io import Trial
 
 __all__ = ["run_distributed"]
@@ -62,7 +63,7 @@ def _size(item: Any) -> int:
 
 def _fit_group(
     packed: list[tuple[int, str, str, list[Any], str | None]],
-    options: Mapping[str, Any],
+    options: FitOptions,
     bones: Mapping[str, Any],
     signatures: Mapping[int, str],
     batch_size: int,
@@ -90,7 +91,7 @@ def _fit_group(
 
 def run_distributed(
     items: Sequence[Any],
-    options: Mapping[str, Any],
+    options: FitOptions,
     *,
     scheduler: Any,
     bones: Mapping[str, Any],
@@ -127,7 +128,7 @@ def run_distributed(
                 for it in group
             ]
             sigs = {it.index: signatures.get(it.index, "") for it in group}
-            fut = client.submit(_fit_group, packed, dict(options), dict(bones), sigs, batch_size, pure=False)
+            fut = client.submit(_fit_group, packed, options, dict(bones), sigs, batch_size, pure=False)
             futures[fut] = group
         by_index = {it.index: it for it in items}
         for fut in as_completed(list(futures)):

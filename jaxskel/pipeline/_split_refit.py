@@ -32,15 +32,19 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._errors import DegenerateMotionError
+from ..joints import Topology
+from ..result import SkeletonResult
 from ..segment import count_singletons, segment_markers
 
-__all__ = ["crowded_nonrigid", "fit_growing_count", "MAX_SPLITS"]
+if TYPE_CHECKING:
+    from ._plan import PreparedFit, StagePlan
+
+__all__ = ["crowded_nonrigid", "grow_count", "MAX_SPLITS"]
 
 #: Most segments added after the rigid fit (each one a further segmentation and fit).
 MAX_SPLITS = 2
@@ -64,44 +68,33 @@ def _replay(caught: list[warnings.WarningMessage], stacklevel: int) -> None:
         warnings.warn(w.message, w.category, stacklevel=stacklevel + 1)
 
 
-def fit_growing_count(
-    prep: Any,
-    first: Callable[[Any], Any],
-    refit: Callable[[Any], Any],
-    add_motion: Callable[[Any, Any], Any],
-    *,
-    seed: int,
-    segment_kwargs: dict[str, Any] | None,
-    on_stage: Any = None,
-    stacklevel: int = 2,
-) -> Any:
+def grow_count(plan: StagePlan, prep: PreparedFit, topology: Topology | None = None, *,
+               stacklevel: int = 2) -> SkeletonResult:
     """Fit a prepared fit, growing its automatic count while a segment holds two or more
-    markers the rigid skeleton cannot hold (module docstring).
+    markers the rigid skeleton cannot hold (module docstring), then add the motion.
 
-    ``first(prep)`` and ``refit(prep)`` return a :class:`jaxskel.SkeletonResult` without
-    inverse kinematics (they are given a ``prep`` whose settings say ``ik=False``);
-    ``add_motion(prep, result)`` runs the IK on the kept result. The kept fit's warnings
-    are re-emitted at ``stacklevel`` relative to the caller (2: the caller's caller).
+    The first fit is the plan's skeleton on ``topology`` (its joint stage solved already,
+    by :func:`jaxskel.fit_batch`) or on the plan's own joint stage; each grown count is
+    segmented and fitted again by the plan. The kept fit's warnings are re-emitted at
+    ``stacklevel`` relative to the caller (2: the caller's caller).
     """
-    settings = dict(prep.settings)
-    growable = settings.get("n_segments") is None and settings.get("rigid", True)
-    no_ik = dataclasses.replace(prep, settings={**settings, "ik": False})
+    options = plan.options
+    growable = options.segment.n_segments is None and options.skeleton.enabled
     with warnings.catch_warnings(record=True) as caught:
-        result = first(no_ik)
+        result = plan.skeleton(prep, topology if topology is not None else plan.joints(prep))
     kept_warnings = list(caught)
     base = result.segmentation
     n = base.n_segments
     for _ in range(MAX_SPLITS if growable else 0):
         # Each count is tried even when the one before was not kept: one more segment
         # can cut a joined group where it is not the pair the rigid fit flagged, and
-        # the next count then cuts the flagged pair too (a random 10-segment tree, seed
-        # 10: 8 -> 9 flags as many markers as before, 10 none).
+        # the next count then cuts the flagged pair too.
         crowded = crowded_nonrigid(result.skeleton)
         n += 1
         if not crowded or n > min(base.max_segments, result.trial.n_markers):
             break
-        with no_ik.stage("split", on_stage):
-            grown = segment_markers(result.trial, n, seed=seed, **(segment_kwargs or {}))
+        with plan.stage(prep, "split"):
+            grown = segment_markers(result.trial, n, seed=options.seed, **options.segment.kwargs())
         grown = dataclasses.replace(
             grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
             split_from=base.split_from or base.n_segments,
@@ -109,7 +102,7 @@ def fit_growing_count(
         )
         with warnings.catch_warnings(record=True) as caught:
             try:
-                candidate = refit(dataclasses.replace(no_ik, trial=result.trial, segmentation=grown))
+                candidate = plan.refit(dataclasses.replace(prep, trial=result.trial, segmentation=grown))
             except DegenerateMotionError:  # e.g. a split-off marker no joint can attach: not a candidate
                 continue
         if candidate.skeleton is None:
@@ -118,4 +111,4 @@ def fit_growing_count(
         if fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment):
             result, kept_warnings = candidate, list(caught)
     _replay(kept_warnings, stacklevel + 1)
-    return add_motion(prep, dataclasses.replace(result, settings=settings))
+    return plan.motion(prep, result)

@@ -1,4 +1,4 @@
-"""Growing the automatic segment count after the rigid fit (:mod:`jaxskel.pipeline._split_refit`):
+"""Growing the automatic segment count after the rigid fit (:func:`jaxskel.pipeline._split_refit.grow_count`):
 when it grows, which fit is kept, which warnings the user sees. The fits are stubs here;
 the end-to-end case (a random tree whose eigengap joins two segments) is in
 ``test_fit_cli.py``."""
@@ -9,10 +9,10 @@ import warnings
 import numpy as np
 import pytest
 
-from jaxskel import synth
-from jaxskel.pipeline._fit import PreparedFit
-from jaxskel.segment._spectral import segment_markers
-from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid, fit_growing_count
+from jaxskel import FitOptions, synth
+from jaxskel.pipeline import PreparedFit, StagePlan
+from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid, grow_count
+from jaxskel.segment import segment_markers
 
 
 @dataclasses.dataclass
@@ -35,6 +35,34 @@ class _Note(UserWarning):
     pass
 
 
+@dataclasses.dataclass(frozen=True)
+class _Plan(StagePlan):
+    """A stage plan whose joint, skeleton and motion stages are stubs: ``first(prep)`` is
+    the first fit, ``again(prep)`` every refit, ``moved(prep, result)`` the motion."""
+
+    first: object = None
+    again: object = None
+    moved: object = None
+
+    def joints(self, prep):
+        return "tree"
+
+    def skeleton(self, prep, topology):
+        assert topology == "tree"
+        return self.first(prep)
+
+    def refit(self, prep):
+        return self.again(prep)
+
+    def motion(self, prep, result):
+        return self.moved(prep, result) if self.moved is not None else result
+
+
+def _grow(prep, first, again, moved=None, stacklevel=2, **settings):
+    plan = _Plan(FitOptions.from_settings(**settings), first=first, again=again, moved=moved)
+    return grow_count(plan, prep, stacklevel=stacklevel)
+
+
 @pytest.fixture(scope="module")
 def trial():
     # the eigengap joins two of its segments (test_fit_cli.py); one more splits them, no marker alone
@@ -42,18 +70,18 @@ def trial():
     return trial
 
 
-def _prep(trial, **settings):
-    seg = segment_markers(trial, settings.get("n_segments"))
+def _prep(trial, n_segments=None):
+    seg = segment_markers(trial, n_segments)
     return PreparedFit(
         input_labels=trial.labels, trial=trial, cleaning=None, label_mapping=None, segmentation=seg,
-        trial_bounds=((0, trial.n_frames),), timings={}, settings={"n_segments": None, "ik": True, **settings},
+        trial_bounds=((0, trial.n_frames),), timings={},
     )
 
 
 def _result(prep, seg, flagged):
     labels = tuple(prep.trial.labels)
     skeleton = _Skeleton(labels, np.asarray(seg.marker_segment), tuple(flagged))
-    return _Result(prep.trial, seg, skeleton, dict(prep.settings))
+    return _Result(prep.trial, seg, skeleton, {})
 
 
 def test_crowded_markers_are_the_flagged_ones_sharing_a_segment():
@@ -69,10 +97,10 @@ def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(
     m0 = prep.segmentation.n_segments
     labels = trial.labels
     first_group = [lab for lab, s in zip(labels, prep.segmentation.marker_segment) if s == 0][:2]
-    calls, ik_settings = [], []
+    calls, moved = [], []
 
     def first(p):
-        assert p.settings["ik"] is False  # IK waits for the kept fit
+        assert not moved  # the motion waits for the kept fit
         warnings.warn("from the first fit", _Note)
         return _result(p, p.segmentation, first_group)
 
@@ -82,18 +110,18 @@ def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(
         return _result(p, p.segmentation, ())
 
     def add_motion(p, r):
-        ik_settings.append(p.settings["ik"])
+        moved.append(r.segmentation.n_segments)
         return dataclasses.replace(r, motion="moved")
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = fit_growing_count(prep, first, refit, add_motion, seed=0, segment_kwargs=None, stacklevel=1)
+        out = _grow(prep, first, refit, add_motion, stacklevel=1)
     assert calls == [m0 + 1]
     seg = out.segmentation
     assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 1)
     assert seg.split_markers == tuple(sorted(first_group, key=labels.index))
     assert seg.eigengap_segments == prep.segmentation.eigengap_segments
-    assert out.motion == "moved" and ik_settings == [True] and out.settings["ik"] is True
+    assert out.motion == "moved" and moved == [m0 + 1]  # the motion of the kept fit only
     # only the kept fit's warnings reach the user, pointing at the caller's line
     assert [str(w.message) for w in caught] == [f"from the refit with {m0 + 1}"]
     assert caught[0].filename == __file__
@@ -114,7 +142,7 @@ def test_a_split_that_does_not_remove_flags_is_discarded(trial):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = fit_growing_count(prep, first, refit, lambda p, r: r, seed=0, segment_kwargs=None)
+        out = _grow(prep, first, refit)
     assert out.segmentation is prep.segmentation
     assert [str(w.message) for w in caught] == ["kept"]
 
@@ -133,7 +161,7 @@ def test_a_given_count_never_grows_and_growth_is_bounded(trial):
         return fit
 
     given = _prep(trial, n_segments=11)
-    out = fit_growing_count(given, flagging(4), flagging(0), lambda p, r: r, seed=0, segment_kwargs=None)
+    out = _grow(given, flagging(4), flagging(0), n_segments=11)
     assert calls == [11] and out.segmentation.count_rule == "given"
 
     # every split removes a flag but leaves two or more on one segment: MAX_SPLITS refits.
@@ -142,10 +170,7 @@ def test_a_given_count_never_grows_and_growth_is_bounded(trial):
     # the singleton rule, tested below, would discard that split.
     calls.clear()
     counts = iter(range(2 + MAX_SPLITS + 3, 0, -1))
-    out = fit_growing_count(
-        _prep(trial), flagging(next(counts)), lambda p: flagging(next(counts))(p), lambda p, r: r,
-        seed=0, segment_kwargs={"mend": False},
-    )
+    out = _grow(_prep(trial), flagging(next(counts)), lambda p: flagging(next(counts))(p), mend=False)
     assert calls == [11 + k for k in range(MAX_SPLITS + 1)]
     assert out.segmentation.n_segments == 11 + MAX_SPLITS and out.segmentation.split_from == 11
 
@@ -163,9 +188,7 @@ def test_a_split_that_leaves_a_marker_alone_is_discarded():
         grown.append(p.segmentation)
         return _result(p, p.segmentation, ())
 
-    out = fit_growing_count(
-        prep, lambda p: _result(p, p.segmentation, group), refit, lambda p, r: r, seed=0, segment_kwargs=None
-    )
+    out = _grow(prep, lambda p: _result(p, p.segmentation, group), refit)
     # 4 and 5 groups of 9 markers: each leaves a marker alone, neither is kept
     assert [g.n_segments for g in grown] == [3 + k for k in range(1, MAX_SPLITS + 1)]
     assert all(1 in np.bincount(g.marker_segment) for g in grown)
@@ -187,10 +210,8 @@ def test_a_count_not_kept_does_not_end_the_search(trial):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = fit_growing_count(
-            prep, lambda p: _result(p, p.segmentation, group), refit, lambda p, r: r, seed=0,
-            segment_kwargs={"mend": False},  # mended, 13 groups leave a marker alone (test above)
-        )
+        # mended, 13 groups leave a marker alone (test above)
+        out = _grow(prep, lambda p: _result(p, p.segmentation, group), refit, mend=False)
     assert calls == [m0 + 1, m0 + 2]
     seg = out.segmentation
     assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 2)

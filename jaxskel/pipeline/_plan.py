@@ -1,0 +1,338 @@
+"""The stage plan: the order of a fit's stages, one plan for the single fit and the batch.
+
+    Trial(s) --prepare--> PreparedFit            clean, [merge labels], segment
+             --joints---> Topology               all-pairs joint costs, MST, tree joints
+             --skeleton-> SkeletonResult         rigid skeleton (no motion yet)
+             --complete-> SkeletonResult         grow the automatic count where a segment is
+                                                 not rigid, inverse kinematics, confirm merges
+
+:func:`jaxskel.fit_skeleton` runs :meth:`StagePlan.fit`. :func:`jaxskel.fit_batch` runs
+:meth:`StagePlan.prepare` for each trial, solves the joint stage of many trials in shared
+vmapped solves, and hands each trial's tree to :meth:`StagePlan.complete`, so both fit
+with the same stages, in the same order, from the same :class:`FitOptions`. Each stage is
+a public function of its own package too (:func:`jaxskel.clean.clean`,
+:func:`jaxskel.relabel.merge_labels`, :func:`jaxskel.segment.segment_markers`,
+:func:`jaxskel.joints.fit_topology`, :func:`jaxskel.skeleton.fit_rigid`,
+:func:`jaxskel.skeleton.inverse_kinematics`); the plan only sequences them, keeps every
+stage's output and diagnostics, and reports progress.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import numpy as np
+
+from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
+from ..clean import CleaningReport, Lowpassed, check_cutoff, clean, lowpass_markers
+from ..io import Trial, median_extent
+from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
+from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
+from ..result import SkeletonResult, nonrigid_text
+from ..segment import Segmentation, combine_trials, segment_markers
+from ..segment import segment_names as default_names
+from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, solver_shape
+from ._options import FitOptions
+from ._warnings import (
+    STACKLEVEL,
+    require_one_tree,
+    warn_near_ties,
+    warn_nonrigid_groups,
+    warn_undetermined,
+    warn_unexercised,
+    warn_untested,
+)
+
+__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units"]
+
+
+def check_units(trial: Trial) -> None:
+    """Raise :class:`InputError` when positions are clearly not in metres.
+
+    A human or a lab linkage spans centimetres to a few metres per frame. The
+    median over frames of the body's span (the same measure the file readers use
+    to guess missing units, :func:`jaxskel.io.median_extent`) must lie in
+    [2 cm, 40 m]; outside it the data are almost surely millimetres read as
+    metres (or similar).
+    """
+    extent = median_extent(np.asarray(trial.positions))
+    name = trial.source or "trial"
+    if extent is None:
+        raise InputError(f"{name}: no frame has two markers present; there is nothing to fit")
+    if extent > 40.0:
+        raise InputError(
+            f"{name}: the markers span {extent:.0f} units; positions look like millimetres, not metres. "
+            "Load files with jaxskel.load (it converts units) or divide by 1000."
+        )
+    if extent < 0.02:
+        raise InputError(
+            f"{name}: the markers span only {extent:.2g} units; positions do not look like metres "
+            "(kilometres?). Convert to metres first."
+        )
+
+
+def as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
+    """One trial or a non-empty sequence of trials, as a list (else :class:`InputError`)."""
+    if isinstance(trial_or_trials, Trial):
+        return [trial_or_trials]
+    if isinstance(trial_or_trials, (str, bytes)) or not isinstance(trial_or_trials, Sequence):
+        raise InputError(
+            "fit_skeleton takes a jaxskel.Trial or a list of Trials; load files with jaxskel.load(path)"
+        )
+    trials = list(trial_or_trials)
+    if not trials or not all(isinstance(t, Trial) for t in trials):
+        raise InputError("fit_skeleton takes a non-empty list of jaxskel.Trial objects")
+    return trials
+
+
+@dataclasses.dataclass
+class PreparedFit:
+    """A fit after the host-side stages (clean, merge labels, segment).
+
+    The state a fit carries between its stages; :func:`jaxskel.fit_batch` solves the
+    joint stage of several prepared fits together.
+    """
+
+    input_labels: tuple[str, ...]
+    trial: Trial
+    cleaning: CleaningReport | None
+    label_mapping: LabelMapping | None
+    segmentation: Segmentation
+    trial_bounds: tuple[tuple[int, int], ...]
+    timings: dict[str, float]
+    #: The cleaned trial given to merge_labels (``None`` without merging): the
+    #: skeleton's confirmation of the merges starts again from it.
+    merge_input: Trial | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class StagePlan:
+    """The stages of a fit with given :class:`FitOptions`, in order.
+
+    ``segment_names`` names the segments (display only; default: from their markers'
+    labels). ``on_stage(name)`` is called as each stage ends (a progress bar).
+    ``device_lock`` is held around the preparation's stages that run JAX code (label
+    merging, segmentation), so that other threads may run the numpy-only ones
+    (:func:`jaxskel.fit_batch`).
+    """
+
+    options: FitOptions = dataclasses.field(default_factory=FitOptions)
+    segment_names: tuple[str, ...] | None = None
+    on_stage: Callable[[str], None] | None = None
+    device_lock: contextlib.AbstractContextManager[Any] | None = None
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        """The names of the stages this plan runs, in order (what ``on_stage`` reports)."""
+        o = self.options
+        names = ["clean", "merge labels", "segment", "joint costs", "tree joints"]
+        if o.skeleton.enabled:
+            names += ["rigid", "ik"] if o.motion.enabled else ["rigid"]
+        return tuple(names)
+
+    @contextlib.contextmanager
+    def stage(self, prep: PreparedFit, name: str) -> Iterator[None]:
+        """Time a stage into ``prep.timings`` (seconds) and report it to ``on_stage``."""
+        t0 = time.perf_counter()
+        yield
+        prep.timings[name] = prep.timings.get(name, 0.0) + time.perf_counter() - t0
+        if self.on_stage is not None:
+            self.on_stage(name)
+
+    # ------------------------------------------------------------- the stages
+    def prepare(self, trial_or_trials: Trial | Sequence[Trial]) -> PreparedFit:
+        """Check units, clean, merge labels, segment."""
+        o = self.options
+        device = self.device_lock if self.device_lock is not None else contextlib.nullcontext()
+        trials = as_trials(trial_or_trials)
+        for t in trials:
+            check_units(t)
+        combined = combine_trials(trials)
+        bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
+        check_cutoff(o.motion.lowpass, rate=combined.rate, allow_none=True)  # below the Nyquist frequency
+        prep = PreparedFit(
+            input_labels=combined.labels, trial=combined, cleaning=None, label_mapping=None,
+            segmentation=None, trial_bounds=bounds, timings={},  # type: ignore[arg-type]
+        )
+        work = combined
+        # Decide on label merging from the raw data: cleaning's short-run rule would
+        # otherwise drop the short relabelled fragments before they can be merged.
+        do_merge = self._merges(work)
+        report = None
+        with self.stage(prep, "clean"):
+            if o.clean.enabled:
+                kwargs = o.clean.kwargs()
+                if do_merge:
+                    kwargs["min_run_s"] = 0.0
+                work, report = clean(work, **kwargs)
+        mapping = None
+        with self.stage(prep, "merge labels"), device:
+            if do_merge:
+                prep.merge_input = work
+                work, mapping = merge_labels(work)
+                work, report = self._clean_merged(work, report)
+        with self.stage(prep, "segment"), device:
+            segmentation = self._segment(work)
+        prep.trial, prep.cleaning, prep.label_mapping, prep.segmentation = work, report, mapping, segmentation
+        return prep
+
+    def joints(self, prep: PreparedFit) -> Topology:
+        """All-pairs joint costs, then the tree and its joints on all frames."""
+        j = self.options.joints
+        with self.stage(prep, "joint costs"):
+            pairs = joint_costs(prep.trial, prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames,
+                                method=j.method)
+        with self.stage(prep, "tree joints"):
+            return fit_topology(
+                prep.trial, prep.segmentation, pairs, root=j.root, alpha=j.alpha, alpha_tree=j.alpha_tree,
+                method=j.method, pose_check=j.pose_check,
+            )
+
+    def skeleton(self, prep: PreparedFit, topology: Topology) -> SkeletonResult:
+        """The rigid skeleton on a tree (no motion: :meth:`motion` adds it)."""
+        o = self.options
+        segmentation, work = prep.segmentation, prep.trial
+        names = self.segment_names if self.segment_names is not None else default_names(segmentation.groups)
+        if len(names) != segmentation.n_segments:
+            raise InputError(f"segment_names has {len(names)} names for {segmentation.n_segments} segments")
+        warn_nonrigid_groups(segmentation, names)
+        warn_untested(untested_joints(segmentation, topology), names, segmentation.segment_sizes)
+        warn_near_ties(near_ties(work, segmentation, topology), names)
+        skeleton = None
+        rigid = o.skeleton.enabled and len(topology.edges) > 0
+        if rigid:
+            require_one_tree(topology, segmentation, names)
+        with self.stage(prep, "rigid"):
+            if rigid:
+                skeleton = self._rigid(work, segmentation, topology, names)
+        return SkeletonResult(
+            input_labels=prep.input_labels, trial=work, cleaning=prep.cleaning, label_mapping=prep.label_mapping,
+            segmentation=segmentation, topology=topology, skeleton=skeleton, motion=None, segment_names=names,
+            trial_bounds=prep.trial_bounds, timings=dict(prep.timings), settings=o.record(),
+        )
+
+    def motion(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:
+        """``result`` with its motion: inverse kinematics, as the options ask."""
+        with self.stage(prep, "ik"):
+            motion = self._inverse_kinematics(result.skeleton, result.trial)
+        return dataclasses.replace(result, motion=motion, timings=dict(prep.timings))
+
+    def refit(self, prep: PreparedFit) -> SkeletonResult:
+        """The joint and skeleton stages of a prepared fit (no motion)."""
+        return self.skeleton(prep, self.joints(prep))
+
+    def complete(self, prep: PreparedFit, topology: Topology | None = None) -> SkeletonResult:
+        """Everything after the preparation, from ``topology`` if the joint stage was solved
+        already (:func:`jaxskel.fit_batch`): the skeleton, the automatic count grown where a
+        segment is not rigid, the motion, and the label merges confirmed."""
+        from ._split_refit import grow_count
+
+        result = grow_count(self, prep, topology, stacklevel=3)
+        if self.options.labels.confirm and prep.label_mapping is not None and result.motion is not None:
+            result = self._confirm_merges(prep, result)
+        return result
+
+    def fit(self, trial_or_trials: Trial | Sequence[Trial]) -> SkeletonResult:
+        """The whole plan: :meth:`prepare`, then :meth:`complete`."""
+        prep = self.prepare(trial_or_trials)
+        return self.complete(prep)
+
+    # ------------------------------------------------------------- internals
+    def _merges(self, work: Trial) -> bool:
+        merge = self.options.labels.merge
+        if merge != "auto":
+            return bool(merge)
+        do_merge = needs_merging(work) and any(lab.startswith("*") for lab in work.labels)
+        if needs_merging(work) and not do_merge:
+            warnings.warn(
+                "this recording has more labels than markers in any frame, but its labels are named, "
+                "so labels were not merged; pass merge_labels=True (CLI: --merge-labels yes) if it "
+                "comes from a passive system that relabels markers after occlusions",
+                DegenerateMotionWarning,
+                stacklevel=5,
+            )
+        return do_merge
+
+    def _clean_merged(self, work: Trial, report: CleaningReport | None) -> tuple[Trial, CleaningReport | None]:
+        """After merging labels: drop physical markers that are still short-lived (not without cleaning)."""
+        if not self.options.clean.enabled:
+            return work, report
+        work, after = clean(work, trim_s=0.0, reject_jumps=False, min_run_s=self.options.clean.min_run_s)
+        return work, dataclasses.replace(
+            report, dropped={**report.dropped, **after.dropped}, duplicates={**report.duplicates, **after.duplicates}
+        )
+
+    def _segment(self, work: Trial, n_segments: int | None = None) -> Segmentation:
+        if work.n_markers < 3:
+            raise DegenerateMotionError(
+                f"only {work.n_markers} markers remain after cleaning; a skeleton needs at least 3 "
+                "(see result.cleaning / the cleaning report for what was dropped)"
+            )
+        s = self.options.segment
+        n = s.n_segments if n_segments is None else n_segments
+        return segment_markers(work, n, seed=self.options.seed, **s.kwargs())
+
+    def _rigid(self, work: Trial, segmentation: Segmentation, topology: Topology, names: Sequence[str]) -> Skeleton:
+        o = self.options.skeleton
+        sliding = np.asarray(topology.undetermined) > 0 if o.hinge_centres == "limb_plane" else None
+        centres, anchored = topology.joint_positions, None
+        if o.joint_centres == "anchored":
+            x, mask = work.to_arrays()
+            anchored = anchored_centres(x, mask, segmentation.marker_segment, topology.edges, topology.joint_positions)
+            centres = anchored.joint_positions
+        skeleton = fit_rigid(
+            work, segmentation.marker_segment, topology.edges, centres, root=topology.root,
+            sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT,
+        )
+        if anchored is not None:
+            report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
+            skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})
+            warn_unexercised(anchored.exercise, [f"{names[p]}-{names[c]}" for p, c in topology.edges])
+            warn_undetermined(skeleton, names)
+        nonrigid = nonrigid_text(skeleton, names, segmentation.n_segments)
+        if nonrigid is not None:
+            warnings.warn(f"markers {nonrigid}", NonRigidMarkerWarning, stacklevel=STACKLEVEL - 1)
+        return skeleton
+
+    def _inverse_kinematics(self, skeleton: Skeleton | None, work: Trial) -> Motion | None:
+        """The IK stage: the skeleton's motion over ``work``, or ``None`` (no skeleton, or IK off)."""
+        o = self.options.motion
+        if not (o.enabled and skeleton is not None):
+            return None
+        # the refinement's slot count: its compiled solver serves the IK too
+        slots, _ = solver_shape(skeleton.marker_segment, skeleton.edges, skeleton.marker_segment.shape[0])
+        if o.lowpass is None:
+            return inverse_kinematics(skeleton, work, slots=slots)
+        # IK poses every frame on its own: the markers' white noise is filtered out first
+        low: Lowpassed = lowpass_markers(work, o.lowpass)
+        motion = inverse_kinematics(skeleton, low.trial, slots=slots)
+        # the residual is reported against the markers as measured, not as filtered
+        column = work.marker_index(motion.marker_labels)
+        raw = np.asarray(work.positions)[:, column]
+        miss = np.sum((motion.fitted_markers - raw) ** 2, axis=-1)
+        seen = np.isfinite(miss)
+        marker_rms = np.sqrt(np.where(seen, miss, 0.0).sum(1) / np.maximum(seen.sum(1), 1))
+        return dataclasses.replace(motion, marker_rms=marker_rms, lowpass_hz=low.cutoff_hz[column])
+
+    def _confirm_merges(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:
+        """Check the label merges against the fitted skeleton; fit again if it corrected any."""
+        with self.stage(prep, "confirm merges"):
+            merged, mapping = confirm_merges(prep.merge_input, prep.label_mapping, result)
+        info = mapping.diagnostics["skeleton"]
+        if not (info["applied"] and (info["links_added"] or info["links_removed"])):
+            return dataclasses.replace(result, label_mapping=mapping, timings=dict(prep.timings))
+        # The corrected merge changes the markers: segment and fit again from it.
+        report = dataclasses.replace(prep.cleaning, dropped={
+            k: v for k, v in prep.cleaning.dropped.items() if k not in prep.label_mapping.physical_labels
+        }) if prep.cleaning is not None else None  # fmt: skip
+        work, report = self._clean_merged(merged, report)
+        with self.stage(prep, "segment"):
+            segmentation = self._segment(work)
+        again = dataclasses.replace(prep, trial=work, cleaning=report, label_mapping=mapping, segmentation=segmentation)
+        return self.motion(again, self.refit(again))
+
