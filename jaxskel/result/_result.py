@@ -13,19 +13,6 @@ from ..clean import CleaningReport
 from ..io import Trial
 from ..joints import Topology
 from ..segment import Segmentation
-from ._summary import (
-    bone_bound,
-    is_loose,
-    near_tie_text,
-    nonrigid_group_hint,
-    nonrigid_group_texts,
-    nonrigid_text,
-    pose_exchange_text,
-    resolution_cell,
-    tree_lines,
-    undetermined_lines,
-    untested_text,
-)
 
 __all__ = ["SkeletonResult"]
 
@@ -138,7 +125,7 @@ class SkeletonResult:
         out: dict[str, float] = {}
         if self.skeleton is not None:
             for (j0, j1), length in zip(self.skeleton.bones, self.skeleton.bone_lengths):
-                out[self._bone_name(j0, j1)] = float(length)
+                out[self.bone_name(j0, j1)] = float(length)
             return out
         jp = self.joint_positions
         edges = self.edges
@@ -148,10 +135,10 @@ class SkeletonResult:
                 for b in range(a + 1, len(js)):
                     d = np.linalg.norm(jp[:, js[a]] - jp[:, js[b]], axis=-1)
                     if np.isfinite(d).any():
-                        out[self._bone_name(js[a], js[b])] = float(np.nanmedian(d))
+                        out[self.bone_name(js[a], js[b])] = float(np.nanmedian(d))
         return out
 
-    def _bone_name(self, j0: int, j1: int) -> str:
+    def bone_name(self, j0: int, j1: int) -> str:
         """``"B (A-C)"``: segment B between its joints with segments A and C."""
         names = self.segment_names
         e0, e1 = {int(v) for v in self.edges[j0]}, {int(v) for v in self.edges[j1]}
@@ -191,7 +178,7 @@ class SkeletonResult:
         from ..joints import bone_uncertainty
 
         spread = bone_uncertainty(self.skeleton)
-        return {self._bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
+        return {self.bone_name(j0, j1): float(u) for (j0, j1), u in zip(self.skeleton.bones, spread)}
 
     def near_ties(self, z: float = 2.0) -> list:
         """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
@@ -208,99 +195,12 @@ class SkeletonResult:
         """Segments with their markers, joints with their costs, how the tree was chosen and
         its runner-up, bone lengths. A joint the recording fixes only to within more than
         10 cm reads ``undetermined``, with the motion that would fix it, and so does the
-        bound of a bone ending at it (:mod:`jaxskel.result._summary`)."""
-        lines = [f"{self.n_segments} segments, {len(self.edges)} joints, root {self.segment_names[self.topology.root]}"]
-        seg = self.segmentation
-        gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
-        rule = {
-            "given": "given",
-            "eigengap": "eigengap",
-            "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
-            f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
-            "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
-            f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
-        }[seg.count_rule]
-        lines.append(
-            f"segment count: {rule}; largest eigengaps after k = {gaps}; "
-            f"white noise {1e3 * seg.white_noise:.2f} mm (taken out of A)"
-        )
-        groups = nonrigid_group_texts(seg, self.segment_names)
-        if groups:
-            lines += [f"  {text}" for text in groups] + [f"  {nonrigid_group_hint(seg)}"]
-        if self.cleaning is not None and self.cleaning.duplicates:
-            pairs = ", ".join(f"{a} -> {b}" for a, b in self.cleaning.duplicates.items())
-            lines.append(f"duplicate labels merged (one marker stored twice): {pairs}")
-        width = max(map(len, self.segment_names), default=0)
-        for name, group in zip(self.segment_names, self.segmentation.groups):
-            lines.append(f"  {name:>{width}}: {', '.join(group)}")
-        anchored = (self.skeleton.diagnostics.get("anchored") if self.skeleton is not None else None) or {}
-        resolution = self.joint_resolutions()
-        lines += self._joint_lines(anchored, resolution)
-        lines += tree_lines(self.topology, self.segment_names, self.settings, self.segmentation)
-        loose = [j for j in range(len(self.edges)) if is_loose(resolution[j])]
-        if loose:
-            lines += [f"  {line}" for line in undetermined_lines(loose, self.segment_names, self.skeleton)]
-        for u in self.untested_joints():
-            lines.append(untested_text(u, self.segment_names, self.segmentation.segment_sizes))
-        for exchange in self.topology.pose_exchanges:
-            lines.append(f"  {pose_exchange_text(exchange, self.segment_names)}")
-        for tie in self.near_ties():
-            lines.append(f"  {near_tie_text(tie, self.segment_names)}")
-        nonrigid = nonrigid_text(self.skeleton, self.segment_names, self.n_segments) if self.skeleton else None
-        if nonrigid is not None:
-            lines.append(f"  {nonrigid}")
-        lines += self._bone_lines(resolution)
-        if self.motion is not None:
-            rms = np.asarray(self.motion.marker_rms)
-            lines.append(f"IK marker residual RMS: median {np.nanmedian(rms) * 1000:.2f} mm, max {np.nanmax(rms) * 1000:.2f} mm")
-            cutoff = self.motion.lowpass_hz
-            if cutoff is not None:
-                done = cutoff[np.isfinite(cutoff)]
-                lines.append(
-                    f"IK markers low-passed at {np.min(done):.1f}-{np.max(done):.1f} Hz (median {np.median(done):.1f}), "
-                    f"{len(cutoff) - len(done)} of {len(cutoff)} as measured"
-                    if len(done) else f"IK markers as measured (no white noise to filter in any of {len(cutoff)})"
-                )
-        return "\n".join(lines)
+        bound of a bone ending at it (:func:`jaxskel.result._report.summary_text`)."""
+        from ._report import summary_text
+
+        return summary_text(self)
 
     __str__ = summary
-
-    def _joint_lines(self, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
-        """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
-        from ..joints import MIN_EXERCISE_DEG
-
-        sweep = np.asarray(anchored.get("exercise", np.full(len(self.edges), np.nan)))
-        names = [self.joint_name(j) for j in range(len(self.edges))]
-        width = max(map(len, names), default=0)
-        t = self.topology
-        lines = ["joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
-        for j, name in enumerate(names):
-            lines.append(
-                f"  {name:>{width}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "
-                f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {resolution_cell(resolution[j])}"
-                + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
-            )
-        return lines
-
-    def _bone_lines(self, resolution: np.ndarray) -> list[str]:
-        """The summary's bone table: lengths, and bounds where the rigid skeleton has them."""
-        bones = self.bone_lengths()
-        if not bones:
-            return []
-        if self.skeleton is None:
-            return ["bone lengths [m]:"] + [f"  {name}: {length:.4f}" for name, length in bones.items()]
-        from ..joints import bone_uncertainty
-
-        loose = any(is_loose(resolution[j]) for j in np.ravel(self.skeleton.bones))
-        lines = [
-            "bone lengths [m], bound [mm] (how far its joints' resolutions let each length move; >= where one "
-            f"joint's is unknown{', undetermined where one joint is' if loose else ''}):"
-        ]
-        spread = bone_uncertainty(self.skeleton)
-        for (j0, j1), bound in zip(self.skeleton.bones, spread):
-            name = self._bone_name(j0, j1)
-            lines.append(f"  {name}: {bones[name]:.4f}  {bone_bound((j0, j1), resolution, bound, self.joint_name)}")
-        return lines
 
     def save(self, path: str, *, overwrite: bool = False, extra_groups: dict[str, Any] | None = None) -> None:
         """Write the HDF5 result file (schema in the README), atomically.
