@@ -79,10 +79,20 @@ def __getattr__(name: str) -> Any:
         return importlib.import_module(f".{name}", __name__)
     module = _LAZY.get(name)
     if module is None:
-        raise AttributeError(f"module 'jaxskel' has no attribute {name!r}")
+        raise AttributeError(f"module 'jaxskel' has no attribute {name!r}{_where(name)}")
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value
+
+
+def _where(name: str) -> str:
+    """``"; it is jaxskel.<stage>.<name>"`` where a stage exports ``name``, else ``""``."""
+    if name.startswith("__"):
+        return ""
+    for sub in _SUBPACKAGES:
+        if name in getattr(importlib.import_module(f".{sub}", __name__), "__all__", ()):
+            return f"; it is jaxskel.{sub}.{name}"
+    return ""
 
 
 def __dir__() -> list[str]:
