@@ -83,7 +83,7 @@ def fit_skeleton(
 
         plan = StagePlan(options, segment_names=plan.segment_names, on_stage=on_stage)
     try:
-        return plan.fit(trial_or_trials)
+        return plan.fit(trial_or_trials, stacklevel=3)  # the caller of fit_skeleton
     finally:
         if bar is not None:
             bar.close()

@@ -38,6 +38,7 @@ from ..segment import Segmentation, combine_trials, segment_markers
 from ..segment import segment_names as default_names
 from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, solver_shape
 from ._options import FitOptions
+from ._split_refit import MAX_SPLITS, crowded_nonrigid, keep_split, replay
 from ._warnings import (
     STACKLEVEL,
     require_one_tree,
@@ -226,21 +227,63 @@ class StagePlan:
         """The joint and skeleton stages of a prepared fit (no motion)."""
         return self.skeleton(prep, self.joints(prep))
 
-    def complete(self, prep: PreparedFit, topology: Topology | None = None) -> SkeletonResult:
+    def complete(self, prep: PreparedFit, topology: Topology | None = None, *, stacklevel: int = 2) -> SkeletonResult:
         """Everything after the preparation, from ``topology`` if the joint stage was solved
         already (:func:`jaxskel.fit_batch`): the skeleton, the automatic count grown where a
-        segment is not rigid, the motion, and the label merges confirmed."""
-        from ._split_refit import grow_count
-
-        result = grow_count(self, prep, topology, stacklevel=3)
+        segment is not rigid, the motion, and the label merges confirmed. The fit's warnings
+        point ``stacklevel`` frames above this call (as :func:`warnings.warn`'s)."""
+        result = self.grow_count(prep, topology, stacklevel=stacklevel + 1)
         if self.options.labels.confirm and prep.label_mapping is not None and result.motion is not None:
             result = self._confirm_merges(prep, result)
         return result
 
-    def fit(self, trial_or_trials: Trial | Sequence[Trial]) -> SkeletonResult:
-        """The whole plan: :meth:`prepare`, then :meth:`complete`."""
+    def fit(self, trial_or_trials: Trial | Sequence[Trial], *, stacklevel: int = 2) -> SkeletonResult:
+        """The whole plan: :meth:`prepare`, then :meth:`complete` (warnings ``stacklevel``
+        frames above this call)."""
         prep = self.prepare(trial_or_trials)
-        return self.complete(prep)
+        return self.complete(prep, stacklevel=stacklevel + 1)
+
+    def grow_count(self, prep: PreparedFit, topology: Topology | None = None, *, stacklevel: int = 2) -> SkeletonResult:
+        """Fit a prepared fit, growing its automatic count while a segment holds two or more
+        markers the rigid skeleton cannot hold (:mod:`jaxskel.pipeline._split_refit`), then add
+        the motion.
+
+        The first fit is the plan's skeleton on ``topology`` (its joint stage solved already,
+        by :func:`jaxskel.fit_batch`) or on the plan's own joint stage; each grown count is
+        segmented and fitted again by this plan. The kept fit's warnings are re-emitted at
+        ``stacklevel`` frames above this call (as :func:`warnings.warn`'s).
+        """
+        options = self.options
+        growable = options.segment.n_segments is None and options.skeleton.enabled
+        with warnings.catch_warnings(record=True) as caught:
+            result = self.skeleton(prep, topology if topology is not None else self.joints(prep))
+        kept_warnings = list(caught)
+        base = result.segmentation
+        n = base.n_segments
+        for _ in range(MAX_SPLITS if growable else 0):
+            # Each count is tried even when the one before was not kept: one more segment
+            # can cut a joined group where it is not the pair the rigid fit flagged, and
+            # the next count then cuts the flagged pair too.
+            crowded = crowded_nonrigid(result.skeleton)
+            n += 1
+            if not crowded or n > min(base.max_segments, result.trial.n_markers):
+                break
+            with self.stage(prep, "split"):
+                grown = segment_markers(result.trial, n, seed=options.seed, **options.segment.kwargs())
+            grown = dataclasses.replace(
+                grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
+                split_from=base.split_from or base.n_segments,
+                split_markers=result.segmentation.split_markers + crowded,
+            )
+            with warnings.catch_warnings(record=True) as caught:
+                try:
+                    candidate = self.refit(dataclasses.replace(prep, trial=result.trial, segmentation=grown))
+                except DegenerateMotionError:  # e.g. a split-off marker no joint can attach: not a candidate
+                    continue
+            if keep_split(result, candidate, base, grown):
+                result, kept_warnings = candidate, list(caught)
+        replay(kept_warnings, stacklevel)
+        return self.motion(prep, result)
 
     # ------------------------------------------------------------- internals
     def _merges(self, work: Trial) -> bool:

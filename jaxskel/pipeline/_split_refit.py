@@ -30,21 +30,14 @@ re-emitted. A given ``n_segments`` is never changed.
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from .._errors import DegenerateMotionError
-from ..joints import Topology
-from ..result import SkeletonResult
-from ..segment import count_singletons, segment_markers
+from ..segment import Segmentation, count_singletons
 
-if TYPE_CHECKING:
-    from ._plan import PreparedFit, StagePlan
-
-__all__ = ["crowded_nonrigid", "grow_count", "MAX_SPLITS"]
+__all__ = ["MAX_SPLITS", "crowded_nonrigid", "keep_split", "replay"]
 
 #: Most segments added after the rigid fit (each one a further segmentation and fit).
 MAX_SPLITS = 2
@@ -62,53 +55,17 @@ def crowded_nonrigid(skeleton: Any) -> tuple[str, ...]:
     return tuple(lab for lab in labels if lab in seg_of and counts[seg_of[lab]] >= 2)
 
 
-def _replay(caught: list[warnings.WarningMessage], stacklevel: int) -> None:
-    """Re-emit recorded warnings at ``stacklevel`` frames above the caller of this function."""
+def replay(caught: list[warnings.WarningMessage], stacklevel: int) -> None:
+    """Re-emit recorded warnings ``stacklevel`` frames above the caller of this function, as
+    :func:`warnings.warn` counts them (1: the caller, 2: its caller)."""
     for w in caught:
         warnings.warn(w.message, w.category, stacklevel=stacklevel + 1)
 
 
-def grow_count(plan: StagePlan, prep: PreparedFit, topology: Topology | None = None, *,
-               stacklevel: int = 2) -> SkeletonResult:
-    """Fit a prepared fit, growing its automatic count while a segment holds two or more
-    markers the rigid skeleton cannot hold (module docstring), then add the motion.
-
-    The first fit is the plan's skeleton on ``topology`` (its joint stage solved already,
-    by :func:`jaxskel.fit_batch`) or on the plan's own joint stage; each grown count is
-    segmented and fitted again by the plan. The kept fit's warnings are re-emitted at
-    ``stacklevel`` relative to the caller (2: the caller's caller).
-    """
-    options = plan.options
-    growable = options.segment.n_segments is None and options.skeleton.enabled
-    with warnings.catch_warnings(record=True) as caught:
-        result = plan.skeleton(prep, topology if topology is not None else plan.joints(prep))
-    kept_warnings = list(caught)
-    base = result.segmentation
-    n = base.n_segments
-    for _ in range(MAX_SPLITS if growable else 0):
-        # Each count is tried even when the one before was not kept: one more segment
-        # can cut a joined group where it is not the pair the rigid fit flagged, and
-        # the next count then cuts the flagged pair too.
-        crowded = crowded_nonrigid(result.skeleton)
-        n += 1
-        if not crowded or n > min(base.max_segments, result.trial.n_markers):
-            break
-        with plan.stage(prep, "split"):
-            grown = segment_markers(result.trial, n, seed=options.seed, **options.segment.kwargs())
-        grown = dataclasses.replace(
-            grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
-            split_from=base.split_from or base.n_segments,
-            split_markers=result.segmentation.split_markers + crowded,
-        )
-        with warnings.catch_warnings(record=True) as caught:
-            try:
-                candidate = plan.refit(dataclasses.replace(prep, trial=result.trial, segmentation=grown))
-            except DegenerateMotionError:  # e.g. a split-off marker no joint can attach: not a candidate
-                continue
-        if candidate.skeleton is None:
-            continue
-        fewer = len(candidate.skeleton.nonrigid_markers) < len(result.skeleton.nonrigid_markers)
-        if fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment):
-            result, kept_warnings = candidate, list(caught)
-    _replay(kept_warnings, stacklevel + 1)
-    return plan.motion(prep, result)
+def keep_split(kept: Any, candidate: Any, base: Segmentation, grown: Segmentation) -> bool:
+    """Whether a fit with one segment more replaces the kept one: its rigid skeleton flags
+    fewer markers, and it leaves no more single-marker segments than the automatic count."""
+    if candidate.skeleton is None:
+        return False
+    fewer = len(candidate.skeleton.nonrigid_markers) < len(kept.skeleton.nonrigid_markers)
+    return fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment)

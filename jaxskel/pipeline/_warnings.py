@@ -25,9 +25,10 @@ __all__ = [
     "warn_unexercised", "warn_untested",
 ]
 
-#: warn_* <- StagePlan.skeleton <- StagePlan.refit <- ... : the frames between a warning
-#: and the user's call on the direct path
-STACKLEVEL = 5
+#: warn_* <- StagePlan.skeleton <- refit <- _confirm_merges <- complete <- fit <- fit_skeleton
+#: <- its caller: the frames from a warning to the user's call on the one path whose warnings
+#: are not recorded and re-emitted (the refit after the label merges were corrected)
+STACKLEVEL = 8
 
 
 def warn_unexercised(exercise: np.ndarray, joint_names: Sequence[str]) -> None:

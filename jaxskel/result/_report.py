@@ -1,9 +1,10 @@
 """The text summary of a fit (:meth:`jaxskel.SkeletonResult.summary`), from the line
-builders of :mod:`jaxskel.result._summary`."""
+builders of :mod:`jaxskel.result._summary`. ``result`` is a :class:`jaxskel.SkeletonResult`
+(not imported: the result imports this module)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -12,13 +13,10 @@ from ._summary import (
     pose_exchange_text, resolution_cell, tree_lines, undetermined_lines, untested_text,
 )
 
-if TYPE_CHECKING:
-    from ._result import SkeletonResult
-
 __all__ = ["summary_text"]
 
 
-def summary_text(result: SkeletonResult) -> str:
+def summary_text(result: Any) -> str:
     """Segments with their markers, joints with their costs, how the tree was chosen and
     its runner-up, bone lengths. A joint the recording fixes only to within more than
     10 cm reads ``undetermined``, with the motion that would fix it, and so does the
@@ -77,7 +75,7 @@ def summary_text(result: SkeletonResult) -> str:
             )
     return "\n".join(lines)
 
-def _joint_lines(result: SkeletonResult, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
+def _joint_lines(result: Any, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
     """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
     from ..joints import MIN_EXERCISE_DEG
 
@@ -94,7 +92,7 @@ def _joint_lines(result: SkeletonResult, anchored: dict[str, Any], resolution: n
         )
     return lines
 
-def _bone_lines(result: SkeletonResult, resolution: np.ndarray) -> list[str]:
+def _bone_lines(result: Any, resolution: np.ndarray) -> list[str]:
     """The summary's bone table: lengths, and bounds where the rigid skeleton has them."""
     bones = result.bone_lengths()
     if not bones:

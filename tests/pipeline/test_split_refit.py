@@ -1,4 +1,4 @@
-"""Growing the automatic segment count after the rigid fit (:func:`jaxskel.pipeline._split_refit.grow_count`):
+"""Growing the automatic segment count after the rigid fit (:meth:`jaxskel.pipeline.StagePlan.grow_count`):
 when it grows, which fit is kept, which warnings the user sees. The fits are stubs here;
 the end-to-end case (a random tree whose eigengap joins two segments) is in
 ``test_fit_cli.py``."""
@@ -11,7 +11,7 @@ import pytest
 
 from jaxskel import FitOptions, synth
 from jaxskel.pipeline import PreparedFit, StagePlan
-from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid, grow_count
+from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid
 from jaxskel.segment import segment_markers
 
 
@@ -60,7 +60,7 @@ class _Plan(StagePlan):
 
 def _grow(prep, first, again, moved=None, stacklevel=2, **settings):
     plan = _Plan(FitOptions.from_settings(**settings), first=first, again=again, moved=moved)
-    return grow_count(plan, prep, stacklevel=stacklevel)
+    return plan.grow_count(prep, stacklevel=stacklevel)  # as warnings.warn: 2 is _grow, 3 its caller
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +115,7 @@ def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = _grow(prep, first, refit, add_motion, stacklevel=1)
+        out = _grow(prep, first, refit, add_motion, stacklevel=3)  # _grow, then this test
     assert calls == [m0 + 1]
     seg = out.segmentation
     assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 1)
