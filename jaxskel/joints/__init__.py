@@ -1,5 +1,5 @@
-"""Joints between segments (Kirk et al. 2005, sec. 4.2-4.3): the joint cost of every pair,
-the minimum spanning tree, attachments of sparsely marked segments, the pose check, near
+"""Joints between segments (Kirk et al. 2005, sec. 3.2): the joint cost of every pair, the
+minimum spanning tree, attachments of sparsely marked segments, the pose check, near
 ties, and how well the motion determines each joint.
 """
 

@@ -1,4 +1,4 @@
-"""Merging the labels of one physical marker (Kirk et al. 2005, sec. 6, passive systems),
+"""Merging the labels of one physical marker (Kirk et al. 2005, sec. 4, passive systems),
 and confirming merges against a fitted skeleton.
 """
 

@@ -1,6 +1,6 @@
-"""Normalisation and motion parameterisation (Sar Dessai, Hornung & Kobbelt 2006): default
-pose, body planes, limb frames; movement filtering, axes by direction joining, joint
-angles by circle intersection, twist.
+"""Normalisation and motion parameterisation (Sar Dessai, Hornung & Kobbelt 2006, sec. 3
+and 4): default pose, body planes, limb frames; movement filtering, axes by direction
+joining, joint angles by circle intersection, twist.
 """
 
 from __future__ import annotations

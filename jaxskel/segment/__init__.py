@@ -1,4 +1,4 @@
-"""Grouping markers into rigid segments (Kirk et al. 2005, sec. 4.1): spectral clustering
+"""Grouping markers into rigid segments (Kirk et al. 2005, sec. 3.1): spectral clustering
 of the pairwise-distance standard deviations, the count from the eigengap; and readable
 segment names.
 """

@@ -1,4 +1,4 @@
-"""The rigid-body skeleton and its motion (Kirk et al. 2005, sec. 5): the rigid fit,
+"""The rigid-body skeleton and its motion (Kirk et al. 2005, sec. 3.3): the rigid fit,
 inverse kinematics (which fills gaps) and forward kinematics.
 """
 
