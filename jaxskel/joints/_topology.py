@@ -76,7 +76,7 @@ PAIR_CHUNK_CPU = 8
 #: cost by at most ``TREE_RTOL`` relative (and whose model predicts no more), or moves
 #: nothing by more than ``TREE_ATOL`` metres, ends the solve. The solver's float64
 #: defaults (1e-10, 1 nm) serve the all-pairs costs that the MST compares; here they only
-#: slid hinge centres along their axes, a direction the rigid stage places by itself
+#: slide hinge centres along their axes, a direction the rigid stage places by itself
 #: (:mod:`jaxskel.skeleton._hinge_centres`). 1e-7 is far below the sampling noise of the cost, a
 #: variance over F x K >= 10^4 samples (relative std ~sqrt(2 / (F K)) >= 10^-3), and 1 um
 #: far below marker noise; the solve ends in far fewer steps with the same joints and
