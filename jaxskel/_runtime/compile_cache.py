@@ -12,7 +12,8 @@ from pathlib import Path
 __all__ = ["CACHE_MAX_BYTES", "cpu_identity", "enable_compile_cache", "machine_cache_dir"]
 
 
-#: Bound of the persistent compilation cache (bytes; a fit's programs take ~2 MB).
+#: Bound of the persistent compilation cache (bytes; a fit's programs take a small
+#: fraction of it, see docs/bench/evidence_from_docstrings.md).
 CACHE_MAX_BYTES = 2 * 1024**3
 
 
@@ -84,10 +85,10 @@ def enable_compile_cache() -> None:
     try:
         Path(cache).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
-        # Every program, however quick to compile: a fit runs ~90 small ones (eager
+        # Every program, however quick to compile: a fit runs many small ones (eager
         # array ops between the jitted stages), each costing a lowering and an XLA
-        # compile per process. Cached, a new process of a 10 s fit took 11.8-12.0 s
-        # instead of 13.9-16.1 s (2 MB of cache instead of 1.7 MB).
+        # compile per process; cached, a new process skips them for a little more disk
+        # (measured: docs/bench/evidence_from_docstrings.md).
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
         jax.config.update("jax_compilation_cache_dir", cache)  # last: only once locked and bounded

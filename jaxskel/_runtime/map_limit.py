@@ -1,13 +1,11 @@
 """Keep a long-lived process under the kernel's limit on memory mappings.
 
-Every program XLA:CPU compiles lives in memory mappings of its own (about 12 for a small
-program, measured on jaxlib 0.10), and JAX keeps every program it compiled for the life
-of the process. Linux caps a process's mappings at ``vm.max_map_count`` (65,530 by
-default); once a new mapping is refused, XLA dies with a segmentation fault, not an
-exception. A process that fits many recordings of different shapes (a notebook, a
-training loop, ``fit_batch`` over a large folder) gets there: a pytest worker of this
-package's suite held 54,941 mappings after ~230 tests, and such workers died with a
-segfault late in a run (three times seen).
+Every program XLA:CPU compiles lives in memory mappings of its own, and JAX keeps every
+program it compiled for the life of the process. Linux caps a process's mappings at
+``vm.max_map_count`` (65,530 by default); once a new mapping is refused, XLA dies with a
+segmentation fault, not an exception. A process that fits many recordings of different
+shapes (a notebook, a training loop, ``fit_batch`` over a large folder, a test suite's
+worker) gets there (the counts observed: docs/bench/evidence_from_docstrings.md).
 
 :func:`release_programs_near_map_limit` runs before each fit: past three quarters of the
 limit it drops JAX's compiled programs (:func:`jax.clear_caches`, which unmaps them;
@@ -24,9 +22,9 @@ from pathlib import Path
 
 __all__ = ["map_usage", "near_map_limit", "release_programs_near_map_limit"]
 
-#: Fraction of ``vm.max_map_count`` past which JAX's programs are dropped. Measured on a
-#: full body: the first fit in a process adds ~5,000 mappings, a fit of another length
-#: ~1,300, so the last quarter of the default limit (16k) leaves room for several fits.
+#: Fraction of ``vm.max_map_count`` past which JAX's programs are dropped. The last
+#: quarter of the limit is headroom for several fits' new programs (mappings per fit:
+#: docs/bench/evidence_from_docstrings.md).
 RELEASE_FRACTION = 0.75
 
 _state = {"warned": False}

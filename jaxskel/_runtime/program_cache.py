@@ -3,9 +3,9 @@
 The persistent compilation cache (:func:`jaxskel._runtime.compile_cache.enable_compile_cache`) keeps
 XLA's compiled code, but a new process still traces every jitted stage in Python and
 lowers it to StableHLO before it can look that code up. For the solvers, built from
-optimistix and equinox, this is most of what a cached ``jaxskel fit`` still pays (10 s
-recording: 2.8 s of tracing and 1.0 s of lowering over 96 programs, 3.0 s of it in the
-five solver programs that go through :func:`call`).
+optimistix and equinox, this is most of what a cached ``jaxskel fit`` still pays, and
+most of that is in the few solver programs that go through :func:`call` (measured:
+docs/bench/evidence_from_docstrings.md).
 
 :func:`call` runs a jitted function through a :func:`jax.export` of it: traced and
 lowered once, serialized to ``<directory>/<name>-<key>.jaxexport``, and in a later
@@ -45,7 +45,8 @@ from ..io import atomic_output
 
 __all__ = ["call", "set_directory"]
 
-#: Bound of the saved programs (bytes; the five programs of a 10 s full-body fit take 0.4 MB).
+#: Bound of the saved programs (bytes; a fit's programs take a small fraction of it, see
+#: docs/bench/evidence_from_docstrings.md).
 MAX_BYTES = 256 * 2**20
 _SUFFIX = ".jaxexport"
 

@@ -6,9 +6,9 @@ frames. Before any fitting, :func:`clean`
 
 0. merges duplicate labels: two labels whose positions coincide (within
    ``duplicate_tolerance``) in every frame where both are seen, over at least
-   ``duplicate_min_s`` of such frames, are one marker stored twice (HDM05's files carry
-   unnamed copies ``*0``, ``*1``, ``*2`` of three named markers). Two physical
-   markers can never be that close (their centres are at least a marker diameter,
+   ``duplicate_min_s`` of such frames, are one marker stored twice (some exports carry
+   unnamed copies ``*N`` of named markers: docs/bench/evidence_from_docstrings.md).
+   Two physical markers can never be that close (their centres are at least a marker diameter,
    >= 3 mm, apart), and a copy would otherwise count twice in every cost. The label
    kept is a named one over an unnamed ``*N``, then the one seen in more frames,
    then the first; it takes the copy's samples where it is itself missing;
@@ -109,13 +109,14 @@ class CleaningReport:
 
 
 def _nanmedian_last(a: np.ndarray) -> np.ndarray:
-    """``np.nanmedian(a, axis=-1)`` for short last axes, ~20x faster.
+    """``np.nanmedian(a, axis=-1)`` for short last axes, without numpy's per-call overhead.
 
-    numpy's nanmedian goes through masked arrays per call; sorting sends NaNs to
-    the end, so the median of the n finite values sits at (n - 1) // 2 and n // 2.
-    All-NaN rows give NaN, as numpy's does.
+    numpy's nanmedian goes through masked arrays per call (timing:
+    docs/bench/evidence_from_docstrings.md); sorting sends NaNs to the end, so the
+    median of the n finite values sits at (n - 1) // 2 and n // 2. All-NaN rows give
+    NaN, as numpy's does.
     """
-    ordered = np.sort(a, axis=-1)  # contiguous: counting NaNs here is 3x cheaper than on a window view
+    ordered = np.sort(a, axis=-1)  # contiguous: counting NaNs here is cheaper than on a window view
     n = a.shape[-1] - np.count_nonzero(np.isnan(ordered), axis=-1)
     lo = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0)[..., None], axis=-1)[..., 0]
     hi = np.take_along_axis(ordered, (n // 2)[..., None].clip(max=a.shape[-1] - 1), axis=-1)[..., 0]

@@ -1,13 +1,10 @@
 """Low-pass filtering of marker trajectories before inverse kinematics.
 
 Inverse kinematics poses every frame on its own, so the white measurement noise of the
-markers passes straight into the joint centres: on the synthetic full body (2 mm noise
-per coordinate, 1 mm soft tissue, 120 Hz) the IK joints were 2.4 mm RMS from the truth
-(median over joints) and an ankle or wrist 4.9-5.2 mm on 4 of 15 seeds. The motion
-underneath is slow against the capture rate, so a zero-lag Butterworth filter
-(``scipy.signal.filtfilt``: forwards and backwards, no phase shift, twice the order)
-removes most of that noise: median 1.5 mm, the worst joints 4.7-4.8 mm (the rest is soft
-tissue that moves with the joint angles, which no filter removes).
+markers passes straight into the joint centres. The motion underneath is slow against
+the capture rate, so a zero-lag Butterworth filter (``scipy.signal.filtfilt``: forwards
+and backwards, no phase shift, twice the order) removes most of that noise; what it
+leaves is soft tissue that moves with the joint angles, which no filter removes.
 
 The cutoff is chosen per marker by Winter's residual analysis (Winter, *Biomechanics
 and Motor Control of Human Movement*, 4th ed., §3.4.4.3), with the marker's own white
@@ -21,17 +18,14 @@ through.
 That reading of the noise holds only where the motion adds nothing to the differences.
 A difference of order ``k`` damps a motion at angular frequency ``w`` per frame by
 ``w^k``, and white noise reads the same ``s`` at every order, so the 4th- and
-5th-difference estimates agree for white noise (ratio 0.99-1.01 on 52 synthetic markers)
-and disagree where motion or coloured noise (a recording filtered or interpolated
-already) is in them: CMU 02_05 at 120 Hz reads 0.81-0.89, Hamner's running TRC at 60 Hz
-0.16-0.40, the swinging leg of biobuddy's 12 Hz hip trial 0.59-0.67, where the 4th
-difference "noise" was motion and a 3 Hz cutoff moved the toe marker by up to 14 mm.
-A marker is filtered only where the two agree within 10 %, it has a micrometre of noise
-or more (not synthetic data without noise) and 100 samples to read it from; and only if
-some cutoff up to 0.8 of the Nyquist frequency passes. Everything else is left as
-measured: of the 854 markers of 17 real recordings 644 are (CMU 02_05, 01_01 and Hamner's
-trials all of theirs), and those filtered get 15-96 Hz, moving by 0.3-2.4 mm at most (the
-12 Hz hip trial's still markers 2.8-4.8 Hz, up to 5 mm).
+5th-difference estimates agree for white noise and disagree where motion or coloured
+noise (a recording filtered or interpolated already) is in them. There the 4th
+difference's "noise" is partly motion, and a cutoff chosen against it would filter away
+motion. A marker is filtered only where the two agree within 10 %, it has a micrometre
+of noise or more (not synthetic data without noise) and 100 samples to read it from; and
+only if some cutoff up to 0.8 of the Nyquist frequency passes. Everything else is left as
+measured. (The ratios, cutoffs and the filter's effect measured on synthetic and real
+recordings: docs/bench/evidence_from_docstrings.md.)
 
 Gaps are not filled or bridged: every run of consecutive samples is filtered on its own
 (runs of a concatenated trial's recordings, ``metadata["trial_bounds"]``, never join),
@@ -60,7 +54,8 @@ _N_CANDIDATES = 24
 #: 5th differences a marker needs for its own noise estimate.
 _MIN_NOISE_SAMPLES = 100
 #: Least ratio of the 5th- to the 4th-difference noise estimate for the differences to be
-#: read as white noise (1 for white noise, within 1 % on 52 synthetic markers).
+#: read as white noise (1 for white noise; motion in the differences lowers it, the 5th
+#: difference damping slow motion more than the 4th).
 _WHITE_AGREEMENT = 0.9
 #: White noise below this (metres) is none: what the 4th difference of a smooth noiseless
 #: trajectory reads (a 1 Hz, 5 cm swing at 120 Hz: 0.05 um), far under any camera's.

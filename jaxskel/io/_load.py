@@ -2,9 +2,9 @@
 
 :func:`load` turns a C3D, TRC, Cortex CSV or jaxskel HDF5 file into a
 :class:`~jaxskel.Trial`; :func:`save_trial` writes one back (HDF5, C3D or TRC),
-atomically. The format modules (``_io_c3d``, ``_io_trc``, ``_io_csv``,
-``_io_h5``) only parse; everything a user relies on is decided here, the same
-way for every format:
+atomically. The format modules (:mod:`jaxskel.io._c3d`, :mod:`jaxskel.io._trc`,
+:mod:`jaxskel.io._csv`, :mod:`jaxskel.io._h5`) only parse; everything a user relies
+on is decided here, the same way for every format:
 
 * **Units.** Positions are converted to metres. The unit stated by the file is
   used; ``units=`` overrides it; where a file states none, see :func:`resolve_units`.
@@ -278,14 +278,10 @@ def infer_up_axis(
     ``x`` is not a candidate by default: no common capture system (Vicon,
     Qualisys, OptiTrack, Motion Analysis, OpenSim) uses a vertical X, and
     ruling it out avoids confusing a forward-leaning or lying body's long
-    axis with the vertical. Checked on the 29 real recordings under
-    ``shared/data/real`` (Z, Y and -Z up; standing, running, squatting,
-    rolling on the floor, lying prone, wheelchair racing, lower body only):
-    all correct, the winner ahead by 0.10-0.16 on the three hardest
-    (wheelchair racing without feet or floor contact, a lower-body-only
-    recording, a prone-to-run trial) and by more than 0.6 on the rest. It is
-    a heuristic: where it matters, pass the axis (``load(..., up_axis=)``);
-    :func:`load` keeps the scores in ``metadata["up_axis_scores"]``.
+    axis with the vertical. It is a heuristic (checked on real recordings:
+    docs/bench/evidence_from_docstrings.md): where it matters, pass the axis
+    (``load(..., up_axis=)``); :func:`load` keeps the scores in
+    ``metadata["up_axis_scores"]``.
 
     Returns
     -------

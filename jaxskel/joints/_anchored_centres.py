@@ -5,11 +5,9 @@ that the marker-to-joint distances stay constant. A rigid segment also keeps the
 fixed in its own frame, and the per-frame freedom can exploit what distances do not
 see: four nearly coplanar markers (a pelvis: waist markers front and back) pin a point
 in their plane only to second order along the plane's normal, so ``j_f`` may slide
-along that normal frame by frame and absorb the motion of the other segment's markers.
-Measured on CMU 02_05 (15 segments): the per-frame hips sit in the plane of the waist
-markers and slide 10-14 mm RMS along its normal; a sphere fit of each thigh marker in
-the pelvis frame (knee marker, thigh marker, independently) puts the hip 14 cm below
-that plane, and the thighs come out 8-9 cm longer than the subject's ``.asf`` femurs.
+along that normal frame by frame and absorb the motion of the other segment's markers:
+a hip next to four waist markers then sits in their plane, away from the centre a
+sphere fit of each thigh marker in the pelvis frame finds, and the thigh comes out long.
 
 This module solves the paper's cost, without the distance prior, with the joint fixed in
 an *anchor* segment ``A`` (either side of the joint, with at least three non-collinear
@@ -36,25 +34,19 @@ misfit. Elsewhere it keeps the per-frame estimate.
 
 The resolution test trusts the misfit ``C*`` to measure what the valley's tilt could be
 made of. When the two segments hardly turn relative to each other that fails: ``C*`` is
-then marker noise (0.5 mm on a standing trial), while a few millimetres of skin sway
-(or a "segment" that is not rigid) tilts an almost flat cost, and its minimum lands
-decimetres away with ``|m_k|`` several ``r_k``. Measured on Hamner's static trial (two
-segments, 0.3 degrees of relative rotation): the joint moved 1023 mm. So a joint is
-refitted only where it is *exercised*: the other segment's markers, seen in the
-anchor's frame, sweep an RMS angle about ``c_0`` (median over markers of
-``rms_f |y_kf - mean_f y_k| / median_f |y_kf - c_0|``; the smaller of the two
-anchors' readings, as a wobbling non-rigid anchor inflates it) of at least
+then marker noise, while a few millimetres of skin sway (or a "segment" that is not
+rigid) tilts an almost flat cost, and its minimum lands decimetres away with ``|m_k|``
+several ``r_k``. So a joint is refitted only where it is *exercised*: the other
+segment's markers, seen in the anchor's frame, sweep an RMS angle about ``c_0`` (median
+over markers of ``rms_f |y_kf - mean_f y_k| / median_f |y_kf - c_0|``; the smaller of
+the two anchors' readings, as a wobbling non-rigid anchor inflates it) of at least
 ``MIN_EXERCISE_DEG``. A 2 degree sweep moves a marker 30 cm from the joint by 10 mm,
 the size of soft-tissue artefact; below it the skin, not the joint, shapes the cost.
-Measured: static trials 0.1-0.6 degrees (every marker below 4.2), the real joints of
-CMU 02_05 and HDM05 dg 4-44 degrees (median over markers).
+Static trials sweep less than that, the joints of moving takes more.
 
-Measured (thigh, shank, upper-arm lengths against the ``.asf``; per-frame -> anchored)
-are in the README and in :func:`jaxskel.fit_skeleton`'s ``joint_centres``. Examples of
-the test: CMU 02_05 left hip, ``m = (-120, -83, 37)`` mm, ``r = (95, 44, 13)`` mm: moved
-150 mm; HDM05 dg left ankle, ``m = (-554, 158, -64)``, ``r = (1007, 182, 97)``: kept;
-a synthetic tree joint 10 mm from the truth whose unconstrained minimum lies 539 mm away
-(``m/r = 0.31``): kept.
+The measurements behind this (per-frame and anchored hips on a real recording, a static
+trial's drift, the sweeps of static and moving takes, examples of the resolution test)
+are in docs/bench/evidence_from_docstrings.md.
 """
 
 from __future__ import annotations
@@ -155,8 +147,9 @@ def _segment_poses(
 
     The mean cloud of each segment comes from the rigid stage's generalised Procrustes
     (passes until the mean cloud settles, at most eight) on at most ``max_frames`` evenly
-    spaced frames; every frame is then aligned to it once (a 120 s recording at 120 Hz:
-    3.8 -> 1 s). Frames are padded to bucket sizes so trials share compiles.
+    spaced frames; every frame is then aligned to it once, in one pass (timing:
+    docs/bench/evidence_from_docstrings.md). Frames are padded to bucket sizes so trials
+    share compiles.
 
     Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
     onto their mean cloud, and ``posed`` (F, S): the frame sees three of the segment's
@@ -256,11 +249,11 @@ def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None
 
     A vmapped while loop runs until its slowest member stops, and each of its steps
     costs as much for a finished problem as for a running one. The steps differ widely
-    (bundled sample: 17-55 for most, 136-300 for a few barely exercised joints), so on a
+    (a barely exercised joint takes several times the steps of the others), so on a
     CPU, where one problem's frames already fill the cores, each problem is its own call
-    and pays only its own steps (bundled sample, 27 problems: 4.7 -> 1.1 s warm, 6.4 ->
-    3.1 s with compilation, centres within 3e-11 m); on an accelerator, which needs the
-    width, they go in one call, padded to a bucket. ``one_per_call``: force either way
+    and pays only its own steps (the same centres up to rounding; timings:
+    docs/bench/evidence_from_docstrings.md); on an accelerator, which needs the width,
+    they go in one call, padded to a bucket. ``one_per_call``: force either way
     (``None``: by the default device, as the tree joints of :mod:`jaxskel.joints._topology`).
     """
     if one_per_call is None:

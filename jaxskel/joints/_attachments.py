@@ -4,9 +4,8 @@ A segment of one marker tests a joint by one distance per frame: whether its mar
 keeps a constant distance to a point of the other segment. Almost any neighbour passes
 that test, so in the minimum spanning tree of the joint costs (Kirk et al. 2005, §3.2)
 a one-marker segment becomes a hub. Real marker sets make such segments out of markers
-placed on joints (acromion, ankle, wrist) and out of lone markers (a hand): on the
-bundled sample the right acromion marker was jointed to the thorax, the head and the
-right upper arm, and the head hung from it.
+placed on joints (acromion, ankle, wrist) and out of lone markers (a hand), and the tree
+hangs whole segments from them (an example: docs/bench/evidence_from_docstrings.md).
 
 The tree is therefore built in two layers:
 
@@ -80,7 +79,7 @@ def attachment_tree(
     """Undirected tree edges (E, 2), the attachments, and the core's cost matrix (module
     docstring). ``cost`` (S, S) is the joint cost (``inf``: infeasible), ``distance_std``
     (M, M) segmentation's ``A`` (NaN: unobserved), ``too_few`` (S, S) the pairs infeasible
-    only for want of markers (:attr:`jaxskel.PairCosts.too_few_markers`)."""
+    only for want of markers (:attr:`jaxskel.joints.PairCosts.too_few_markers`)."""
     cost = np.asarray(cost, dtype=float)
     marker_segment = np.asarray(marker_segment)
     too_few = np.zeros(cost.shape, bool) if too_few is None else np.asarray(too_few, bool)

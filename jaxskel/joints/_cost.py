@@ -24,16 +24,14 @@ Solvers
 ``method="lm"`` (default): a Levenberg–Marquardt over ``(c, r)`` that eliminates
 each frame's 3x3 block onto the K x K radii system (Schur complement), with
 per-frame damping, and reseeding of frames stuck on a mirror branch; see
-:mod:`jaxskel.joints._cost_lm` for the maths. Measured (bench/bench_jointcost.py,
-synthetic hip, 1 mm noise, 2-core CPU, float64): 10 steps, 15 ms for 1,200 frames and
-0.2 s for 12,000 frames once compiled, joint centre within 1.6 mm RMS. True joints
-converge in 7-63 steps; pairs without a joint need hundreds (their costs are upper
-bounds when capped, which only makes them look worse).
+:mod:`jaxskel.joints._cost_lm` for the maths. True joints converge in far fewer steps
+than pairs without a joint, which need hundreds (their costs are upper bounds when
+capped, which only makes them look worse).
 
 Why not variable projection inside optimistix (outer ``optx.LevenbergMarquardt`` on
-the radii, inner vmapped ``optx.least_squares`` per frame)? Measured: the inner
-per-frame trilaterations needed 20-60 steps with optimistix's GaussNewton,
-LevenbergMarquardt and Dogleg (no warm start across outer evaluations is possible
+the radii, inner vmapped ``optx.least_squares`` per frame)? The inner per-frame
+trilaterations need many steps with optimistix's GaussNewton, LevenbergMarquardt and
+Dogleg (no warm start across outer evaluations is possible
 in a pure residual function, and the Gauss–Newton model of the square-root prior
 residual is poor), and a hand-written variable projection with exact inner solves
 converged to worse local minima on near-collinear marker sets than the joint
@@ -44,10 +42,12 @@ more robust, so it is what ``"lm"`` runs.
 eliminated in closed form) via ``optimistix.NonlinearCG``. The objective is scaled
 to a per-observation sum (multiplied by K max_k n_k) before it is handed to
 optimistix: on the mean-normalised Q the gradient is ~1/F and the backtracking line
-search (first trial step 1) crawls -- 20,000 steps without converging at 1,200
-frames. Scaled, it converges in 300-6,000 steps (5-10x LM's time), but it has no
-reseeding: on the synthetic hip it stops at a genuine local minimum 73 % above LM's
-cost with a few frames on the mirror branch (45 mm RMS joint error).
+search (first trial step 1) crawls without converging. Scaled, it converges, in more
+steps and more time than LM, but it has no reseeding: it can stop at a genuine local
+minimum with a few frames on the mirror branch, well above LM's cost.
+
+Steps, timings and errors of both methods, and of variable projection, are in
+docs/bench/evidence_from_docstrings.md.
 
 Identifiability
 ---------------
@@ -64,9 +64,9 @@ marker noise alone is expected to give it: noise of variance sigma^2 (the fitted
 distance variance) turns ``u`` by ``(I - u u^T) eps / d``, which gives
 ``N = sigma^2 sum_f D_f^T [sum_k beta (I - u u^T)/d^2] D_f`` with ``D_f = A_f^-1 B_f``
 the joint displacement per unit radius change. The generalised eigenvalues of
-``(S, N)`` are signal-to-noise ratios: ~1-25 for directions only noise pins (hinge
-axis, rigid pair), 10^2-10^4 for directions the motion exercises (measured with
-0.5-2 mm noise and +-0.6-1 rad motion). Reported:
+``(S, N)`` are signal-to-noise ratios: of order 1 to tens for directions only noise pins
+(hinge axis, rigid pair), hundreds and more for directions the motion exercises (the
+ranges measured: docs/bench/evidence_from_docstrings.md). Reported:
 
 * ``identifiability``: the smallest signal-to-noise ratio (dimensionless);
 * ``undetermined_dims``: how many directions have a ratio below 20
@@ -159,8 +159,7 @@ class JointSolution(eqx.Module):
     converged
         ``result == successful`` *and* ``residual <= max(100 rtol, 1e-6) * cost`` (...).
         The second test catches a solver that meets its own step criterion while
-        crawling: optimistix's NCG reports success 50 % above the minimum on the
-        hip of the synthetic body.
+        crawling, as optimistix's NCG can, well above the minimum.
     residual
         Cost decrease (m^2) a full Newton step would still predict at the returned
         point: ~0 at a minimum, the same yardstick for both methods.
@@ -351,9 +350,9 @@ def _identifiability(problem: PairProblem, c, r, noise_variance, norm):
     schur = jnp.where(pair, schur, 0.0) + jnp.diag(jnp.where(valid_m, 0.0, 1e12 * noise_fill))
     schur, noise = 0.5 * (schur + schur.T), 0.5 * (noise + noise.T)
 
-    # Plain XLA (Cholesky + Jacobi, jaxskel._math.linalg), not jnp.linalg.eigh: these two
-    # independent problems ran concurrently as LAPACK kernels and deadlocked XLA:CPU's
-    # 2-thread pool (both threads in lapack_dsyevd_ffi -> ParallelBatchMap).
+    # Plain XLA (Cholesky + Jacobi, jaxskel._math.linalg), not jnp.linalg.eigh: as LAPACK
+    # kernels these two independent problems can run concurrently and deadlock XLA:CPU's
+    # intra-op pool (ParallelBatchMap; the observed hang: docs/bench/evidence_from_docstrings.md).
     snr = generalised_eigvalsh(schur, noise)
     undetermined = jnp.sum(snr < _UNDETERMINED_SNR).astype(jnp.int32)
 

@@ -1,8 +1,8 @@
 """Closed-form starting point for the joint solve: the algebraic (linearised) fit.
 
 The joint-cost objective is non-convex; started from the marker centroid the
-Levenberg–Marquardt iteration can settle in a local minimum centimetres from the
-joint (measured: 16 mm RMSE at twice the optimal cost on the linkage). Squaring
+Levenberg–Marquardt iteration can settle in a local minimum away from the joint at
+a multiple of the optimal cost (measured: docs/bench/evidence_from_docstrings.md). Squaring
 the constant-distance condition makes it *linear*:
 
     |c_f - m_fk|^2 = s_k        (s_k = r_k^2)
@@ -42,11 +42,10 @@ one quadratic equation per frame in the K radii. :func:`consistency_start` minim
 points -- a {-1, 0, 1}^3 grid along the principal axes of the markers of one
 reference frame, at 0.5 and 1 times their span, so the set moves with the data and
 does not depend on marker order -- and keeps the best. Started from the marker
-centroid, the geometric solve of such a pair settles in local minima: measured on
-synthetic bodies with two markers per segment (30 s, 2 mm noise, 3 mm soft tissue,
-seeds 0-3), a hip's cost was 3-6 times its value at the true joint and the thighs were
-jointed to each other; from the consistency start the hips reach their true basin
-(joint 12-17 mm from the truth) and the topology is exact on seeds 0-7.
+centroid, the geometric solve of such a pair settles in local minima, at several times
+the cost of the true joint, enough to joint the wrong segments; from the consistency
+start it reaches the true joint's basin (measured on synthetic bodies with two markers
+per segment: docs/bench/evidence_from_docstrings.md).
 """
 
 from __future__ import annotations
@@ -97,7 +96,7 @@ def algebraic_start(
     utu = jnp.einsum("fki,fkj->fij", u, u)
     # A frame informs s only with >= 5 markers spanning 3-D: with 4, the centred
     # rows of U_f span exactly the centred subspace, (I - H_f) P_f = 0 and s drops out.
-    ev = jax.vmap(eigvalsh)(utu)  # plain XLA: no LAPACK kernel in the solver (see _linalg)
+    ev = jax.vmap(eigvalsh)(utu)  # plain XLA: no LAPACK kernel in the solver (see jaxskel._math.linalg)
     good = (n[:, 0] >= 5) & (ev[:, 0] > 1e-8 * jnp.maximum(ev[:, -1], 1e-300))
     utu_safe = jnp.where(good[:, None, None], utu, jnp.eye(3, dtype=dtype))
     inv = inv3(utu_safe)

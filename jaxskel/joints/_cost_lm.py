@@ -22,28 +22,30 @@ The model Hessian keeps the Gauss–Newton part ``u u^T`` of the distance residu
 and the *positive part* ``max(s, 0)`` of the curvature term. For the prior this is its
 exact Hessian ``alpha/(2d) (I - u u^T)``; the Gauss–Newton matrix of the usual
 ``sqrt(alpha beta d)`` residual instead puts curvature ``alpha/(4d)`` on the radial
-direction and none across it, which made Gauss–Newton/LM crawl (measured: 20-60
-inner steps per frame). Dropping negative curvature keeps the model positive
-semi-definite, so every damped system is positive definite.
+direction and none across it, which makes Gauss–Newton/LM crawl. Dropping negative
+curvature keeps the model positive semi-definite, so every damped system is positive
+definite.
 
 Damping is two-level. A global Marquardt parameter ``lambda`` scales ``diag`` of the
 whole model; each frame also has its own extra damping ``mu_f``. The trial radii
 ``r + dr`` are shared, but every frame keeps its old ``c_f`` when the step would raise
 that frame's cost (and its ``mu_f`` grows). Frames in which the markers are nearly
 collinear with the joint have an almost flat direction and propose steps of metres;
-with a single damping parameter those few frames forced every frame to crawl
-(measured: 80-170 steps versus 20-45 with per-frame safeguarding).
+with a single damping parameter those few frames force every frame to crawl.
 
 Each frame's problem can also have a second local minimum near the mirror image of
-the joint in its markers. A frame that lands there is stuck: on the synthetic hip,
-12 of 1,200 frames (in runs of 2-6) sat 12-18 cm off with a 100x larger frame cost,
-and the pair's cost was 6.6x the true minimum. So each trial also offers every
-frame the joints of the frames 1, 4 or 16 (in turn, one distance per step) before and
-after it, moved by the mean displacement of the shared markers, and keeps whichever
-candidate is cheapest (the stepped, the kept, or a neighbour's). Good branches spread into a bad run from both
-ends; with frames out of time order the candidates are merely never taken. Every
+the joint in its markers. A frame that lands there is stuck far from the joint at a
+much larger frame cost, and a run of such frames raises the pair's cost well above the
+true minimum. So each trial also offers every frame the joints of the frames 1, 4 or
+16 (in turn, one distance per step) before and after it, moved by the mean displacement
+of the shared markers, and keeps whichever candidate is cheapest (the stepped, the kept,
+or a neighbour's). Good branches spread into a bad run from both ends; with frames out
+of time order the candidates are merely never taken. Every
 choice is per frame at the same trial radii, so the cost still decreases
 monotonically.
+
+The step counts and costs behind these choices (on a synthetic hip) are in
+docs/bench/evidence_from_docstrings.md.
 """
 
 from __future__ import annotations
@@ -93,7 +95,7 @@ def inv3(a: Float[Array, "*b 3 3"]) -> Float[Array, "*b 3 3"]:
 # ------------------------------------------------------------ planar (SoA) kernels
 # The hot loop keeps every 3-vector as three (F,) or (F, K) planes instead of a trailing
 # axis of 3: XLA:CPU vectorises along the minor axis, and a minor axis of 3 wastes most
-# of each SIMD register (measured on 16,384 x 8 entries: frame costs 1.5 -> 0.63 ms).
+# of each SIMD register (timing: docs/bench/evidence_from_docstrings.md).
 # A symmetric 3x3 block is its six upper-triangle planes (jaxskel._math.sym3).
 
 
@@ -167,7 +169,7 @@ def _block_solve(a6, b, c_diag, rhs_c, rhs_r):
     a_inv_rhs = _sym_apply(a_inv, rhs_c)  # 3 x (F,)
     hi = jax.lax.Precision.HIGHEST
     schur = jnp.diag(c_diag) - sum(jnp.dot(bi.T, gi, precision=hi) for bi, gi in zip(b, a_inv_b))
-    # S is SPD (a Schur complement of the damped normal matrix); see _linalg for why not jnp.linalg.
+    # S is SPD (a Schur complement of the damped normal matrix); see jaxskel._math.linalg for why not jnp.linalg.
     x_r = spd_solve(schur, rhs_r - sum(jnp.dot(ri, bi, precision=hi) for ri, bi in zip(a_inv_rhs, b)))
     x_c = tuple(ri - jnp.dot(gi, x_r, precision=hi) for ri, gi in zip(a_inv_rhs, a_inv_b))
     return x_c, x_r

@@ -38,20 +38,16 @@ how well it fixes the skeleton:
 
 Why 10 cm. It is a scale a user reads directly (a joint placed only to within a hand's
 width is not identified by any standard of biomechanics), and it lies between the two
-families measured (2026-11-25, ``jaxskel.synth`` full bodies, 30 s at 120 Hz, 2 mm
-noise, gaps, ``fit_skeleton`` defaults): a calibration motion reads 12-51 mm at 1 mm
-soft tissue and 15-47 mm at 3 mm (knees and elbows 13-27 mm past their axis), while a
-walk's hips read 138-154 mm and the shoulders of its arm-long groups 292-326 mm (seeds
-0, 1, 15; those fits are wrong, and this is where they say so), and 30 % of the
-calibration range 108-211 mm at ankles and wrists (joint errors up to 30 mm). The resolution is a
-sensitivity to an artefact of the misfit's size, not an error bar: errors ran at
-0.04-0.7 of it, more only along the axis of a hinge the rigid stage could not place
-(the elbows of the 30 % fit, 53 mm off along it against 44-74 mm), where soft tissue
-gives the flat direction some curvature. On real recordings, most takes are short or
-exercise some joints little, and the resolution says so joint by joint: 24 of the 26
-moving takes in ``shared/data`` name 1-10 joints (CMU 02_05's right hip at 167 mm, whose
-thigh is 74 mm longer than the subject's ``.asf`` femur, while the left hip reads 95 mm
-and its thigh is within 1 mm).
+families of fits: a motion that turns every joint through its range fixes every centre
+to within centimetres, while a motion that leaves joints barely turned (a walk's hips
+and shoulders, part of the range at ankles and wrists) leaves them free over
+decimetres, and those fits, wrong or loosely placed, say so here. The resolution is a sensitivity
+to an artefact of the misfit's size, not an error bar: errors run at a fraction of it,
+more only along the axis of a hinge the rigid stage could not place, where soft tissue
+gives the flat direction some curvature. On real recordings most takes are short or
+exercise some joints little, and the resolution says so joint by joint. (The
+resolutions and errors measured on synthetic bodies and real recordings:
+docs/bench/evidence_from_docstrings.md.)
 
 Joints with no anchor (neither segment carries three non-collinear markers) have no
 fixed-centre fit and report NaN: unknown, not determined. Joints the recording does not

@@ -8,11 +8,10 @@ certain as its margin over its rival, ``cost(rival) / cost(p, c) - 1``.
 
 Both costs are estimates. A joint cost is a variance of marker-joint distances over
 the sampled frames plus the distance prior, both divided by the pair's residual
-fraction (:class:`jaxskel.PairCosts`). The prior is not small: the variance is a median
-35-46 % of a tree joint's cost on CMU 02_05, HDM05 dg and the squat, 12-48 % on the
-flagged joints of synthetic 1 mm-noise trees. The allowance below applies the
-variance's relative error to the whole cost, so it is wider than the variance's own
-noise where the prior weighs most. A variance from ``d`` residual degrees
+fraction (:class:`jaxskel.joints.PairCosts`). The prior is not small: the variance can be
+well under half of a tree joint's cost. The allowance below applies the variance's
+relative error to the whole cost, so it is wider than the variance's own noise where
+the prior weighs most. A variance from ``d`` residual degrees
 of freedom has a relative standard error of about ``sqrt(2 / d)`` (Gaussian residuals),
 with ``d = sum_t max(K_t - 3, 0)``: the ``K_t`` markers of the pair seen in frame ``t``
 less the 3 coordinates of that frame's joint. The margin is within the sampling noise
@@ -23,13 +22,9 @@ when
 ``z = 2`` by default (the difference of the two estimates is within two standard
 errors). The tree could then be either way, and the data do not say which; the fit
 names such joints (:attr:`jaxskel.SkeletonResult.near_ties`, the summary, a
-:class:`jaxskel.AmbiguousTreeWarning`) and leaves the tree as the MST made it.
-
-Measured on 8 real recordings (README, "Accuracy"): 10 joints within the allowance, 5 of
-them wrong (tennis serve at a 1.2 % margin, squat 3.8 %, numediart 85_12 4.4 %, pycgm
-twice) and 5 right; HDM05 dg none. Synthetic full bodies: none, the closest rival 5-40
-standard errors away. A random 12-segment tree's one wrong joint: a 1.5 % margin against
-a 15 % allowance.
+:class:`jaxskel.AmbiguousTreeWarning`) and leaves the tree as the MST made it. (The
+margins and allowances measured on real and synthetic trees, and the share of the prior
+in the costs: docs/bench/evidence_from_docstrings.md.)
 
 However wide, the smallest margin of any joint is the runner-up tree's: of the trees that
 differ from the fit's in one joint, the one whose swapped pair costs the least more
@@ -40,12 +35,10 @@ segments fits the tree's pair better) is not a near tie: the poses settled it, a
 summary reports the exchange (and neither is it the runner-up).
 
 Tried and not used: the same test on the variance parts alone (the prior taken out),
-which asks whether the data, not the prior, chose the joint. It names the wrong joints
-of all three wrong synthetic trees (12 segments seed 3, 16 segments seeds 0 and 1,
-where the rival fits the distances as well or better and only the prior decided), but
-also a right joint on each 16-segment one, four right joints on the exact 16-segment
-tree of seed 3, two right joints on HDM05 dg and the right hip on CMU 02_05, and it
-misses the squat's wrong joint (+26 % in variance).
+which asks whether the data, not the prior, chose the joint. It names wrong joints
+where the rival fits the distances as well or better and only the prior decided, but
+also right joints on synthetic and real trees, and it misses a wrong joint that wins
+on the variance too (measured: docs/bench/evidence_from_docstrings.md).
 """
 
 from __future__ import annotations

@@ -4,10 +4,9 @@ Kirk et al.'s joint cost (§3.2) gives the joint its own position ``j_f`` in eve
 and asks only that marker-joint distances stay constant. The relaxation is what lets the
 method test a joint on segments of one or two markers, but it lets ``j_f`` wander with
 whatever the distances do not pin down, and it charges a segment's own non-rigidity to
-every joint the segment is tried with. CMU 02_05: the thorax group (STRN, T10, CLAV,
-C7) bends with the spine, its markers' distances to any neck point vary by 24-26 mm^2,
-and the head's cheapest joint is with the left upper arm group (LSHO, LUPA, LELB), whose
-shoulder turns 5 degrees in the take (normalised joint costs 7.06 against 8.72 mm^2).
+every joint the segment is tried with: a thorax group that bends with the spine makes
+the head's true joint expensive, and a neighbour that barely turns can then come out
+cheaper.
 
 A joint is a point fixed in both segments. Where each segment of a pair carries three
 or more non-collinear markers, their marker-only poses (``R x + t`` maps a frame's
@@ -21,8 +20,7 @@ frames that pose both: a linear least-squares problem in six unknowns (SCoRE, Eh
 al. 2006), solved for every pair at once from its 6 x 6 normal equations
 (pseudo-inverse: along a hinge's axis the centre is free and the misfit does not
 depend on it). Each pose averages over its segment's markers, so a segment that flexes
-moves its pose, not the test. On CMU 02_05: head-thorax 35 mm^2, head-left upper arm
-898 mm^2.
+moves its pose, not the test.
 
 The check overrules the joint costs only where the poses reject a tree joint clearly.
 Removing tree edge ``(p, c)`` cuts the tree in two; the lowest-misfit pair across the
@@ -37,37 +35,23 @@ summary, ``/topology/pose_exchanges``), and the near-tie test
 
 Segments of one or two markers have no pose, and the check above never judges their
 joints; the joint costs made such a segment a hub where its one or two distances fitted
-several neighbours (CMU 01_01: the left upper arm, LUPA and LELB, jointed to the right
-upper arm, the head and the thorax at 13.4, 14.2 and 14.6 mm^2). A second pass judges
-exactly those edges, with the *anchored sphere misfit* (:func:`sphere_misfit`): how far
-the sparse segment's markers are from keeping constant distances to one centre fixed in
-the other segment's pose (01_01's left upper arm: 17 mm^2 about the thorax, 72 and 89
-mm^2 about the right upper arm and the head). Rivals across the cut are judged by the
-same statistic (the better of a pair's two directions), with the same factor, and
+several neighbours about equally well. A second pass judges exactly those edges, with
+the *anchored sphere misfit* (:func:`sphere_misfit`): how far the sparse segment's
+markers are from keeping constant distances to one centre fixed in the other segment's
+pose. Rivals across the cut are judged by the same statistic (the better of a pair's
+two directions), with the same factor, and
 one-marker attachments (:mod:`jaxskel.joints._attachments`) take no part. Exchanges are
-labelled ``test="sphere"``. Its effect on synthetic and real trees is measured by
-``bench/sweep_bodies.py`` and ``bench/real_trees.py`` (``docs/bench/``).
+labelled ``test="sphere"``. Its effect on synthetic and real trees is measured in
+docs/bench/sweep_bodies.md and docs/bench/real_trees.md.
 
 Why a margin, and not simply a spanning tree of the misfit: where two segments barely
 turn against each other, any point is nearly fixed in both and the misfit is small
-whatever the joint. nimblephysics' squat moves both thighs alike (1.4-2.5 degrees
-between them): thigh-thigh fits to 69 mm^2 against 91 mm^2 for the true left hip, and a
-minimum spanning tree of the misfit took it.
+whatever the joint: segments that move alike (both thighs in a symmetric squat) fit
+each other better than their true joints, and a minimum spanning tree of the misfit
+joints them.
 
-Measured (2026-11-26): the trees of the 15 real recordings of ``../shared/data/real``
-(``fit_skeleton(..., rigid=False, ik=False)``, automatic count), edges judged by marker
-names where the marker set is known: joints between non-adjacent body parts 32 -> 30.
-Corrected: CMU 02_05's head (from the left upper arm to the thorax, misfit 898 -> 35
-mm^2) and pycgm's (from the left forearm to the thorax; two more of its wrong joints
-move to other wrong ones: the left forearm and the left thigh, whose anatomical
-neighbours are not groups of their own there, go to the thorax); numediart 03_rolling's
-left upper arm (from the right upper arm to the trunk; names the scorer does not know).
-The squat's left shank and foot, which the joint costs hang from the left thigh through
-the foot (965 mm^2), go to the right thigh (39 mm^2), which the symmetric squat makes
-look fixed: wrong either way. No right joint is exchanged; ten recordings have no
-exchange, and a raw recording of unnamed slots has one nobody can judge. Synthetic
-bodies: none (``bench/sweep_bodies.py``, seeds 0-3 and 4-7, 58 bodies, every tree as
-before; full bodies at 1 and 3 mm soft tissue, seeds 0-3).
+The fixed-centre check's measured effect on real and synthetic trees, and the misfits of
+the cases above, are in docs/bench/evidence_from_docstrings.md.
 """
 
 from __future__ import annotations

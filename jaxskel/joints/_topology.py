@@ -68,20 +68,19 @@ MIN_PAIR_FRAMES = 10
 PAIR_WEIGHTS = ("normalized", "objective", "variance")
 #: Segment pairs solved per vmapped call in the all-pairs pass (accelerators; on CPU
 #: ``PAIR_CHUNK_CPU``: a vmapped while loop runs until its slowest pair stops, so
-#: narrower chunks waste less: 120 s full body, 105 pairs: 64 -> 3.1 s, 16 -> 2.1 s,
-#: 8 -> 1.8 s, 4 -> 2.3 s, per-call overheads taking over).
+#: narrower chunks waste less, until per-call overheads take over; timings by chunk
+#: size: docs/bench/evidence_from_docstrings.md).
 PAIR_CHUNK = 64
 PAIR_CHUNK_CPU = 8
 #: Stopping tolerances of the full-frame (tree) pass in float64: a step that lowers the
 #: cost by at most ``TREE_RTOL`` relative (and whose model predicts no more), or moves
 #: nothing by more than ``TREE_ATOL`` metres, ends the solve. The solver's float64
 #: defaults (1e-10, 1 nm) serve the all-pairs costs that the MST compares; here they only
-#: slid hinge centres along their axes, a direction the rigid stage places by itself
+#: slide hinge centres along their axes, a direction the rigid stage places by itself
 #: (:mod:`jaxskel.skeleton._hinge_centres`). 1e-7 is far below the sampling noise of the cost, a
 #: variance over F x K >= 10^4 samples (relative std ~sqrt(2 / (F K)) >= 10^-3), and 1 um
-#: far below marker noise. Measured, synthetic full body 30 s, 2 mm noise, seeds 0-3 with
-#: 3 mm soft tissue and 0-1 without: tree steps 493-935 -> 236-385, joint RMSE and bone
-#: errors equal to 0.001 mm and 0.0005 %; full body 120 s: tree pass 9.3 -> 4.4 s.
+#: far below marker noise; the solve ends in far fewer steps with the same joints and
+#: bones (measured: docs/bench/evidence_from_docstrings.md).
 #: (float32 solves keep the solver's defaults, 1e-5 and 1 um, looser already.)
 TREE_RTOL, TREE_ATOL = 1e-7, 1e-6
 
@@ -126,10 +125,9 @@ class PairCosts:
       for every pair alike; raw Q does not (a 4-marker pair keeps a quarter of its
       residual, an 8-marker pair 5/8), and so favours joints between sparsely marked
       segments whatever their motion. The prior is divided by f too: where few
-      redundant distances constrain the joint, a false joint hides far away (a
-      4-marker thigh-shoulder pair on CMU 02_05 reached V = 0.5 mm^2 with the joint
-      47 cm from its markers), and the prior must weigh more. Measured on 12 real
-      recordings (see docs/design.md): right edges gained on 6, lost on none.
+      redundant distances constrain the joint, a false joint hides far away at a low
+      variance, and the prior must weigh more. (Measured on real recordings:
+      docs/bench/evidence_from_docstrings.md.)
     * ``"objective"``: Q itself (the paper).
     * ``"variance"``: V alone (favours single-marker segments: the joint sits on
       that marker at no cost).
@@ -269,10 +267,10 @@ def solve_chunked(
     start. Chunks go round-robin to
     ``devices`` (default: the default device) and are dispatched asynchronously, at
     most ``in_flight`` per device at a time, so several accelerators work at once. On
-    CPU devices one chunk runs at a time: concurrent executions of the solver hung
-    XLA:CPU (jaxlib 0.10) for good while it still called LAPACK kernels (native stacks:
-    both intra-op threads in ``lapack_dsyevd_ffi`` -> ``ParallelBatchMap``); it has none
-    now (docs/design.md), and on a CPU a second execution has no spare core anyway.
+    CPU devices one chunk runs at a time: concurrent XLA:CPU executions of batched LAPACK
+    kernels can deadlock its intra-op pool (``ParallelBatchMap``, :mod:`jaxskel._math.linalg`;
+    the observed hang: docs/bench/evidence_from_docstrings.md); the solver calls none now,
+    and on a CPU a second execution has no spare core anyway.
 
     ``rtol``/``atol``: the solver's stopping tolerances (``None``: its defaults for the
     dtype, :func:`jaxskel.joints.solve_joints`). They are traced, so changing them does not
@@ -745,9 +743,8 @@ def solve_trees(
     finished joint as for a running one, so a chunk costs its size times its
     slowest joint's steps. On a CPU, where one joint's frames already fill the
     cores, the default chunk is therefore 1 and each joint pays only its own steps
-    (full body, 120 s, solver's default tolerances: 38 s with the tree's 14 joints in
-    one chunk -> 8 s; hinge joints needed 40-220 steps, ball joints 8-20; at
-    ``TREE_RTOL``/``TREE_ATOL`` 26-105 and 5-10, 4.4 s). On accelerators, which need the
+    (a hinge joint takes several times the steps of a ball joint; timings:
+    docs/bench/evidence_from_docstrings.md). On accelerators, which need the
     width, it is the bucket of the largest tree, slow joints sorted together. A
     joint's solution does not depend on the chunking.
     """

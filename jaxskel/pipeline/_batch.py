@@ -11,7 +11,8 @@ Pipeline (one process)::
 
 * **Batched core.** The candidate segment pairs of all trials whose padded shapes
   agree (frame bucket, marker bucket) are concatenated and solved in the same
-  fixed 64-pair chunks (:func:`jaxskel.joints._topology.solve_chunked`); the tree joints
+  fixed-size chunks (``PAIR_CHUNK`` pairs, ``PAIR_CHUNK_CPU`` on a CPU;
+  :func:`jaxskel.joints._topology.solve_chunked`); the tree joints
   of those trials are pooled, sorted by their first-pass step count and solved in
   shared chunks as well. A pair's solution does not depend on its chunk mates (the
   vmapped while loop freezes finished pairs), so every trial gets exactly what
@@ -73,12 +74,12 @@ from ._plan import PreparedFit, StagePlan
 __all__ = ["fit_batch", "BatchResult", "TrialOutcome", "discover_trials"]
 
 #: Held around every stage that runs JAX code. Two XLA:CPU executions at once (two threads,
-#: or two forced host devices) hung for good (jaxlib 0.10, reproduced on the joint solver
-#: before it became LAPACK-free): batched LAPACK kernels (the rigid fit's SVD and Cholesky
-#: still are) split their batch over XLA's intra-op pool with ``ParallelBatchMap`` and
-#: block a pool thread until the pieces finish; with two threads and two such calls, both
-#: wait for work queued behind the other. So the pipeline overlaps only numpy/IO work with
-#: the device, and more cores are used through processes (Dask workers).
+#: or two forced host devices) can hang for good: batched LAPACK kernels (the rigid fit's
+#: SVD and Cholesky still are) split their batch over XLA's intra-op pool with
+#: ``ParallelBatchMap`` and block a pool thread until the pieces finish; with two threads
+#: and two such calls, both wait for work queued behind the other (a batch that hung so,
+#: and the fix: docs/bench/batch_hang_stress.md). So the pipeline overlaps only numpy/IO
+#: work with the device, and more cores are used through processes (Dask workers).
 DEVICE_LOCK = threading.RLock()
 
 #: Recording suffixes :func:`discover_trials` picks up.

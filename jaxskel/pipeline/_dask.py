@@ -117,7 +117,7 @@ def run_distributed(
     try:
         n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         # one group per worker, at most batch_size trials each: batching within a worker saves
-        # more than finer load balancing would (measured, bench/bench_batch.py)
+        # more than finer load balancing would (bench/bench_batch.py: docs/bench/fit_batch_1_8.json)
         size = group_size or max(1, min(batch_size, math.ceil(len(items) / n_workers)))
         ordered = sorted(items, key=_size)
         groups = [ordered[i : i + size] for i in range(0, len(ordered), size)]

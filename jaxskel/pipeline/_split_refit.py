@@ -7,12 +7,12 @@ rigidity limit (``sigma`` is at least 3 mm, so that soft tissue on real data doe
 split segments). The rigid skeleton sees such a group plainly: one rigid body cannot
 follow both parts, and the markers of the smaller part keep residuals of several times
 the median (:attr:`jaxskel.skeleton.Skeleton.nonrigid_markers`, ``> 3x`` the median RMS and
-``> median + 1 mm``). Random 12-segment trees (1 mm noise): the eigengap joined two
-segments twice in four seeds, and in both the joined group held 2-5 flagged markers.
+``> median + 1 mm``), and a joined group holds several such markers.
 
 A single flagged marker on a segment is what soft tissue and markers on joints look
-like on real data (the bundled sample's right head marker, a forearm marker in HDM05
-bd), so the count grows only where a segment holds **two or more** flagged markers:
+like on real data, so the count grows only where a segment holds **two or more**
+flagged markers (the cases on synthetic trees and real recordings:
+docs/bench/evidence_from_docstrings.md):
 
 1. segment again from scratch with one segment more (the paper's samplings and
    scoring, :func:`jaxskel.segment.segment_markers` given ``n``), and fit the joints and the

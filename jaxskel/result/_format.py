@@ -16,7 +16,7 @@ Schema version 1 (documented in the README, "Result file"):
   ``rigid_limit`` (metres), ``sigma``, ``white_noise`` (metres), ``split_from`` (the automatic count before it grew, 0 if it did not),
   ``rigid_count`` (the first larger count with every group rigid, passed over for a lone marker; 0 if none);
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute
-  ``joint_cost_weight`` says which, see :class:`jaxskel.PairCosts`), ``joint_objective``
+  ``joint_cost_weight`` says which, see :class:`jaxskel.joints.PairCosts`), ``joint_objective``
   (S, S) Kirk's Q, ``edges`` (J, 2) parent -> child, ``root`` (), ``roots`` (component roots), ``infeasible``
   (n, 2) pairs with ``infeasible_reason`` (n,) str, ``untested``/``untested_std``, ``near_ties`` (t, 3)
   (joint, rival pair) with ``near_ties_margin`` (t, 2) (margin, noise allowance); ``fixed_misfit``

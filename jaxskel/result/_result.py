@@ -147,14 +147,14 @@ class SkeletonResult:
 
     def untested_joints(self) -> list:
         """Sparsely marked segments whose likelier joint could not be tested
-        (:func:`jaxskel.untested_joints`)."""
+        (:func:`jaxskel.joints.untested_joints`)."""
         from ..joints import untested_joints
 
         return untested_joints(self.segmentation, self.topology)
 
     def undetermined_joints(self) -> list:
         """Tree joints whose centre the recording fixes only to within more than 10 cm
-        (:func:`jaxskel.undetermined_joints`); empty without the rigid skeleton."""
+        (:func:`jaxskel.joints.undetermined_joints`); empty without the rigid skeleton."""
         from ..joints import undetermined_joints
 
         return undetermined_joints(self.skeleton) if self.skeleton is not None else []
@@ -171,7 +171,7 @@ class SkeletonResult:
 
     def bone_uncertainties(self) -> dict[str, float]:
         """How far each bone length of :meth:`bone_lengths` can move with its joints inside
-        their resolutions (metres, NaN where unknown; :func:`jaxskel.bone_uncertainty`).
+        their resolutions (metres, NaN where unknown; :func:`jaxskel.joints.bone_uncertainty`).
         Empty without the rigid skeleton."""
         if self.skeleton is None:
             return {}
@@ -182,7 +182,7 @@ class SkeletonResult:
 
     def near_ties(self, z: float = 2.0) -> list:
         """Tree joints whose cost is within the sampling noise of a rival pair's, the pair
-        the tree would joint instead (:func:`jaxskel.near_ties`)."""
+        the tree would joint instead (:func:`jaxskel.joints.near_ties`)."""
         from ..joints import near_ties
 
         return near_ties(self.trial, self.segmentation, self.topology, z=z)
@@ -221,7 +221,7 @@ class SkeletonResult:
         units: str = "m",
         rotation_order: str = "ZXY",
     ) -> Path:
-        """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.export_bvh`),
+        """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.result.export_bvh`),
         segments named by :attr:`segment_names`, at the recording's frame rate.
 
         ``trial`` picks one input trial of a joint fit (its frames, ``trial_bounds``);

@@ -34,20 +34,21 @@ Following the paper:
   noise of std ``s`` per coordinate on both markers adds ``2 s^2`` to the variance of
   their distance, whatever the motion, so ``A_ij`` becomes ``sqrt(max(A_ij^2 - 2 s^2,
   0))``, with ``s`` read from the recording itself (:func:`white_noise`). Without it the
-  affinity scale, which follows the noise floor, grew with the noise while the joints'
-  motion did not: at 4-5 mm of noise the wrist and ankle (A 12-16 mm against 6 mm
-  within a segment) looked rigid, and full bodies came out with 10 of 15 segments.
-  Real recordings carry 0.0-0.4 mm of white noise, where this changes an A of 3 mm (the
-  smallest affinity scale) or more by < 0.06 mm; all 29 in ``../shared/data`` keep their groups.
+  affinity scale, which follows the noise floor, grows with the noise while the joints'
+  motion does not, until joints that move little (a wrist, an ankle) look rigid and
+  their segments are joined. Where the noise is small against the affinity scale, an
+  ``A`` at that scale or above changes by about ``s^2 / A``, a negligible amount.
 * Beyond the paper, a chosen count must give rigid groups: while some group holds two
   markers whose A_ij exceeds ``rigid_ratio * sigma`` (an affinity below e^-4.5 = 1 %:
   the affinity itself calls them unrelated), the count grows by one, up to
   ``max_segments``. The eigengap reads chains of affinity as one cluster: markers placed
-  on joints (a knee marker rigid with both thigh and shank) link whole limbs, and on
-  CMU 02_05 it chose 11 segments with thigh and shank markers in one group (A = 16 mm,
-  5.5 sigma); the grown count, 14, separates every limb segment. The eigengap's count
-  is kept when no count up to ``max_segments`` is rigid (a marker that moves against
-  every neighbour), or when the first rigid one leaves more single-marker groups.
+  on joints (a knee marker rigid with both thigh and shank) link whole limbs into one
+  group, which the grown count separates. The eigengap's count is kept when no count up
+  to ``max_segments`` is rigid (a marker that moves against every neighbour), or when
+  the first rigid one leaves more single-marker groups.
+
+The measurements behind these departures (noise levels, counts on real recordings) are in
+docs/bench/evidence_from_docstrings.md.
 
 The pairwise statistic is one jit-compiled JAX function, vmapped over samplings,
 on padded (bucketed) arrays with masks.
@@ -97,8 +98,9 @@ _distance_std_batched = jax.jit(jax.vmap(distance_std))
 
 
 #: Order of the time difference :func:`white_noise` reads: the k-th difference of white
-#: noise has variance C(2k, k) s^2, while a smooth trajectory's shrinks as dt^k (k = 4
-#: keeps 60 Hz running within 0.04 mm of the 240 Hz figure; k = 2 read 1.0 mm there).
+#: noise has variance C(2k, k) s^2, while a smooth trajectory's shrinks as dt^k, so a
+#: higher order keeps fast motion at a low frame rate out of the estimate (4 against 2:
+#: docs/bench/evidence_from_docstrings.md).
 _NOISE_DIFFERENCE_ORDER = 4
 #: Median of the chi-square distribution with 3 degrees of freedom.
 _CHI2_3_MEDIAN = 2.365974
@@ -360,26 +362,23 @@ def _mend(labels: np.ndarray, a: np.ndarray, sigma: float, ratio: float = MEND_R
 
     Spectral clustering follows chains of high affinity. A marker seen with a few others
     only in a stretch where they happen not to move relative to each other (a label
-    present for 3 s of a 19 s take) is falsely rigid with all of them and can tie a
-    marker from elsewhere on the body into their group (numediart 03_rolling: the left
-    acromion marker grouped with the left thigh, median A 168 mm to its group, which
-    then jointed the left leg to the right hand). Spectral cuts also run through a
-    segment now and then (HDM05 dg: a forearm marker kept with the upper arm, a heel
-    marker with the shank). Marker i of group g moves to group h only when
+    present for a short part of a take) is falsely rigid with all of them and can tie a
+    marker from elsewhere on the body into their group, which then gets jointed where no
+    joint is. Spectral cuts also run through a segment now and then, leaving a marker
+    with the neighbouring segment (cases on real and synthetic recordings:
+    docs/bench/evidence_from_docstrings.md). Marker i of group g moves to group h only when
 
     * it is not rigid with its own group: the lower quartile of ``A_ij`` over the other
       members j of g exceeds ``sigma`` (the affinity's scale), or ``ratio`` times the
       largest ``A_ij`` over h. The second reading catches a marker near a joint that
-      spectral clustering put on the wrong side: synthetic 16-segment tree (seed 1), a
-      marker at A = 2.4-2.6 mm from its two group mates, under ``sigma`` = 3 mm, but
-      1.4-1.5 mm from every marker of its own segment (the noise floor). ``ratio`` = 1.5
+      spectral clustering put on the wrong side: rigid with its group mates at the
+      affinity's scale (under ``sigma``), but at the noise floor with every marker of its
+      own segment, ``ratio`` times closer. ``ratio`` = 1.5
       is about 2.6 standard errors of the log of a ratio of two distance stds over the
       fewest frames a sampling has (40: ``1/sqrt(40)`` = 0.16), before the quartile and
       the median over samplings. The largest ``A_ij`` over h, not a quartile: with the
-      upper quartile, markers moved into groups they were rigid with on most pairs only,
-      and on biobuddy's right-hip trial no count was rigid any more. On the real
-      recordings it moves one marker (numediart 03_rolling: a medial femoral epicondyle
-      marker from the shank to the thigh, which already held the lateral one);
+      upper quartile, markers move into groups they are rigid with on most pairs only,
+      and can leave a recording with no rigid count at all;
     * it is more rigid with h than with g as distributions, not by a few pairs: the
       upper quartile of ``A_ij`` over h is below that lower quartile over g (a marker on
       a joint, about as rigid with either side, never passes);
@@ -610,11 +609,10 @@ def segment_markers(
                 if _least_rigidity(grown[0], a_observed) <= limit:
                     # A new single-marker group has no partner for a joint among its
                     # neighbours when they carry few markers (a joint needs 4 in all):
-                    # it is then jointed anywhere (HDM05 dg: a heel marker alone, jointed
-                    # to the forearm). Keep the eigengap's count then, and report this one.
-                    # Accepting a lone marker whose most rigid partner's group is large
-                    # enough for a joint was tried: better on numediart 85_12 (8 -> 13),
-                    # worse on 03_rolling (14 -> 24), squat and biobuddy's trunk trial.
+                    # it is then jointed anywhere. Keep the eigengap's count then, and
+                    # report this one. (An example, and accepting a lone marker whose most
+                    # rigid partner's group is large enough for a joint, tried and not
+                    # adopted: docs/bench/evidence_from_docstrings.md.)
                     if count_singletons(grown[0]) <= count_singletons(labels):
                         rule, (labels, scores, best) = "rigid", grown
                     else:
