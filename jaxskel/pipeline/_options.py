@@ -87,12 +87,14 @@ class AnyOf:
     """Accepted by any of several constraints (``None`` accepts ``None``)."""
 
     options: tuple[Any, ...]
+    #: how an error message names the accepted values (default: each option's own words)
+    what: str | None = None
 
     def accepts(self, value: Any) -> bool:
         return any(value is None if c is None else c.accepts(value) for c in self.options)
 
     def describe(self) -> str:
-        return " or ".join("None" if c is None else c.describe() for c in self.options)
+        return self.what or " or ".join("None" if c is None else c.describe() for c in self.options)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,7 +241,7 @@ class JointOptions(_Group):
     method: str = setting("lm", Choice(("lm", "ncg")), "joint solver", flat="method", advanced=False)
     alpha: float = setting(1e-5, _NONNEG, "weight of the distance prior in the joint cost", flat="alpha")
     alpha_tree: float | str = setting(
-        "auto", AnyOf((Choice(("auto",)), _NONNEG)),
+        "auto", AnyOf((Choice(("auto",)), _NONNEG), what="'auto' or a number >= 0"),
         "distance-prior weight of the tree joints' refit: 'auto' (0 where the motion determines the joint) or a "
         "number", flat="alpha_tree", cli_values=None)
     topology_frames: int = setting(300, Interval(10, integer=True), "frames sampled for the all-pairs joint costs",
@@ -272,7 +274,7 @@ class MotionOptions(_Group):
     enabled: bool = setting(True, BOOL, "run inverse kinematics (which fills gaps)", flat="ik", flag="--no-ik",
                             advanced=False)
     lowpass: float | str | None = setting(
-        "auto", AnyOf((None, Choice(("auto",)), _POS)),
+        "auto", AnyOf((None, Choice(("auto",)), _POS), what="'auto', None or a frequency in Hz (> 0)"),
         "low-pass filter of the markers IK poses: 'auto' (per marker, residual analysis), a cutoff in Hz, or None",
         flat="ik_lowpass", advanced=False)
 
