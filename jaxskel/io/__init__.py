@@ -6,13 +6,14 @@ from __future__ import annotations
 
 from ._load import infer_up_axis, load, save_trial
 from ._sample import load_sample, sample_path
-from ._trial import Trial, UP_AXES, rotation_between_axes
+from ._raw import UP_AXES
+from ._trial import Trial, rotation_between_axes
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
 from ._atomic import atomic_output, input_sources, refuse_input
 from ._h5_values import put
-from ._load import median_extent
+from ._raw import median_extent
 
 __all__ = [
     "Trial", "UP_AXES", "infer_up_axis", "load", "load_sample", "rotation_between_axes",

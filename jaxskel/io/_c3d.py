@@ -25,8 +25,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._atomic import atomic_output
-from ._load import RawRecording, resolve_units, zeros_to_nan
-from ._trial import Trial
+from ._raw import RawRecording, TrialLike, resolve_units, zeros_to_nan
 
 __all__ = ["read_c3d", "write_c3d"]
 
@@ -132,7 +131,7 @@ def _parse(c3d: ezc3d.c3d, file: Path, units: str | None) -> RawRecording:
     )
 
 
-def write_c3d(trial: Trial, file: Path, *, overwrite: bool = False) -> None:
+def write_c3d(trial: TrialLike, file: Path, *, overwrite: bool = False) -> None:
     """Write ``trial`` as a C3D: float32 millimetres, labels, rate, first frame, up axis.
 
     Missing samples are written as C3D marks them, (0, 0, 0) with residual -1

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
-from ._load import RawRecording, parse_table, read_text, resolve_units, zeros_to_nan
+from ._raw import RawRecording, parse_table, read_text, resolve_units, zeros_to_nan
 
 __all__ = ["read_csv"]
 

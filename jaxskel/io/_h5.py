@@ -29,8 +29,7 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ._atomic import atomic_output
-from ._load import RawRecording, Units
-from ._trial import UP_AXES, Trial
+from ._raw import UP_AXES, RawRecording, TrialLike, Units
 
 __all__ = ["TRIAL_VERSION", "read_h5", "write_h5"]
 
@@ -38,7 +37,7 @@ __all__ = ["TRIAL_VERSION", "read_h5", "write_h5"]
 TRIAL_VERSION = 1
 
 
-def write_h5(trial: Trial, file: Path, *, overwrite: bool = False) -> None:
+def write_h5(trial: TrialLike, file: Path, *, overwrite: bool = False) -> None:
     """Write ``trial`` in the layout of the module docstring (gzip-compressed positions)."""
     from .._version import __version__
 

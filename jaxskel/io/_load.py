@@ -27,11 +27,10 @@ what is wrong; exceptions of the parsing libraries never escape.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import re
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,30 +38,13 @@ import numpy as np
 from jaxtyping import Float
 
 from .._errors import InputError, UnitsWarning
-from ._trial import UP_AXES, Trial
+from ._raw import UP_AXES, RawRecording, median_extent, unit_scale
+from ._trial import Trial
 
 __all__ = ["load", "save_trial", "infer_up_axis", "median_extent"]
 
 #: Suffix -> format module. Suffixes are compared in lower case.
 _READERS = {".c3d": "c3d", ".trc": "trc", ".csv": "csv", ".h5": "h5", ".hdf5": "h5"}
-_WRITERS = {".c3d": "c3d", ".trc": "trc", ".h5": "h5", ".hdf5": "h5"}
-
-#: Length units -> metres per unit. Keys are lower case, without dots.
-UNIT_SCALES = {
-    "m": 1.0,
-    "meter": 1.0,
-    "meters": 1.0,
-    "metre": 1.0,
-    "metres": 1.0,
-    "dm": 0.1,
-    "cm": 0.01,
-    "mm": 0.001,
-    "millimeter": 0.001,
-    "millimeters": 0.001,
-    "in": 0.0254,
-    "inch": 0.0254,
-    "inches": 0.0254,
-}
 
 # Vicon's names for trajectories that were reconstructed but never labelled.
 _UNLABELED = re.compile(r"^\*\d+$")
@@ -80,46 +62,6 @@ _BELOW_FLOOR = 0.05
 # A marker "touches" the floor when it is this close to it (foot markers sit
 # 2-10 cm above the ground; a lying body's markers likewise).
 _ON_FLOOR = 0.10
-
-
-@dataclasses.dataclass(frozen=True)
-class Units:
-    """How raw values become metres: ``metres = raw * scale``."""
-
-    scale: float
-    name: str
-    source: str  # "file", "argument" or "assumed"
-    #: why an assumption was made (announced as a UnitsWarning by load), or None
-    note: str | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class RawRecording:
-    """What a format reader found, before the shared conventions are applied.
-
-    ``positions`` are already in metres with NaN for missing samples;
-    ``labels`` are as written in the file (prefixes included).
-    """
-
-    positions: np.ndarray
-    labels: tuple[str, ...]
-    rate: float
-    units: Units
-    first_frame: int = 1
-    #: point index -> why it is not a marker ("angles", "modeled_markers", ...)
-    non_marker: Mapping[int, str] = dataclasses.field(default_factory=dict)
-    #: points that are not positions at all (angles, forces, ...), always dropped
-    non_position: frozenset[int] = frozenset()
-    #: complete up axis written by jaxskel itself (authoritative) or None
-    declared_up_axis: str | None = None
-    #: axis letter ("x"/"y"/"z") stated by the file; its sign is not trusted
-    stated_up_letter: str | None = None
-    strip_prefixes: bool = True
-    #: format-specific metadata entries
-    extra: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-    #: a saved trial's own source and metadata (HDF5), restored as they were
-    source: str | None = None
-    provenance: Mapping[str, Any] | None = None
 
 
 # ---------------------------------------------------------------------- public
@@ -234,19 +176,7 @@ def save_trial(trial: Trial, path: str | os.PathLike[str], *, overwrite: bool = 
     if not isinstance(trial, Trial):
         raise InputError(f"save_trial needs a Trial, got {type(trial).__name__}")
     file = Path(path)
-    fmt = _WRITERS.get(file.suffix.lower())
-    if fmt is None:
-        raise InputError(
-            f"cannot write {file}: unknown file type {file.suffix!r}; "
-            f"supported: {', '.join(sorted(_WRITERS))}"
-        )
-    if fmt == "c3d":
-        from ._c3d import write_c3d as write
-    elif fmt == "trc":
-        from ._trc import write_trc as write
-    else:
-        from ._h5 import write_h5 as write
-    write(trial, file, overwrite=overwrite)
+    trial.save(file, overwrite=overwrite)
     return file
 
 
@@ -329,113 +259,6 @@ def infer_up_axis(
 
 
 # ------------------------------------------------------------ shared helpers
-def unit_scale(units: str, file: Path) -> float:
-    """Metres per ``units`` (case and dots ignored); InputError for unknown units."""
-    key = str(units).strip().lower().replace(".", "")
-    if key not in UNIT_SCALES:
-        raise InputError(
-            f"{file}: unknown length unit {units!r}; expected one of "
-            f"{', '.join(sorted(UNIT_SCALES))} (pass units='mm' etc. to override)"
-        )
-    return UNIT_SCALES[key]
-
-
-def resolve_units(stated: str | None, override: str | None, raw: np.ndarray, file: Path) -> Units:
-    """The length unit of raw values.
-
-    ``override`` wins; else the stated unit; else (nothing stated) millimetres
-    are assumed, unless the data are implausible as millimetres: when the
-    median over frames of the markers' largest coordinate range is below 5
-    units, the values must be metres (5 mm would be a marker set smaller than
-    a coin). Either way the assumption is explained in ``note``, which
-    :func:`load` emits as a :class:`~jaxskel.UnitsWarning`.
-    """
-    if override is not None:
-        return Units(unit_scale(override, file), str(override).strip(), "argument")
-    if stated is not None and stated.strip():
-        return Units(unit_scale(stated, file), stated.strip(), "file")
-    extent = median_extent(raw)
-    if extent is not None and extent < 5.0:
-        name = "m"
-        why = f"its markers span only {extent:.3g} units per frame, so they must be metres"
-    else:
-        name = "mm"
-        why = "assuming millimetres, the usual unit of motion capture"
-    note = (
-        f"{file} does not state its length unit; {why}. Pass units='mm', 'cm' or 'm' "
-        "to load() to set it explicitly."
-    )
-    return Units(UNIT_SCALES[name], name, "assumed", note)
-
-
-def median_extent(raw: np.ndarray) -> float | None:
-    """Median over frames of the largest per-axis range of the present markers."""
-    present = ~np.isnan(raw).any(axis=-1) & ~(raw == 0).all(axis=-1)
-    framed = present.sum(axis=1) >= 2
-    if not framed.any():
-        return None
-    x, p = raw[framed], present[framed][..., None]
-    hi = np.where(p, x, -np.inf).max(axis=1)
-    lo = np.where(p, x, np.inf).min(axis=1)
-    return float(np.median((hi - lo).max(axis=1)))
-
-
-def zeros_to_nan(x: np.ndarray) -> np.ndarray:
-    """Samples exactly at (0, 0, 0) become missing (NaN); returns a new array."""
-    out = np.array(x, dtype=np.float64, copy=True)
-    out[(out == 0).all(axis=-1)] = np.nan
-    return out
-
-
-def read_text(file: Path) -> str:
-    """Text of a file (UTF-8, else Latin-1); InputError for binary data."""
-    data = file.read_bytes()
-    if b"\x00" in data:
-        raise InputError(f"cannot read {file}: it holds binary data, not text")
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        return data.decode("latin-1")
-
-
-def parse_table(rows: Sequence[tuple[int, Sequence[str]]], width: int, file: Path) -> np.ndarray:
-    """Numbers of text rows, shape (rows, width); empty or absent cells are NaN.
-
-    ``rows`` holds (line number, cells). Rows may be shorter than ``width``
-    (the missing cells are empty) or longer if the extra cells are empty
-    (trailing separators); anything else is an InputError naming the line.
-    """
-    padded = []
-    for line_no, cells in rows:
-        if any(c.strip() for c in cells[width:]):
-            raise InputError(
-                f"{file}, line {line_no}: {len(cells)} values where at most {width} are expected"
-            )
-        cells = [c.strip() for c in cells[:width]]
-        padded.append(cells + [""] * (width - len(cells)))
-    if not padded:
-        return np.zeros((0, width))
-    text = np.array(padded, dtype=str)
-    try:
-        table = np.where(text == "", "nan", text).astype(np.float64)
-    except ValueError:
-        for r, (line_no, _) in enumerate(rows):
-            for c, cell in enumerate(padded[r]):
-                try:
-                    float(cell or "nan")
-                except ValueError:
-                    raise InputError(
-                        f"{file}, line {line_no}, column {c + 1}: {cell!r} is not a number"
-                    ) from None
-        raise
-    if np.isinf(table).any():
-        line_no = rows[int(np.argwhere(np.isinf(table))[0, 0])][0]
-        raise InputError(
-            f"{file}, line {line_no}: infinite value; write missing samples as empty cells"
-        )
-    return table
-
-
 def _read_raw(fmt: str, file: Path, units: str | None) -> RawRecording:
     if fmt == "c3d":
         from ._c3d import read_c3d as read

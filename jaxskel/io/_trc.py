@@ -24,8 +24,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._atomic import atomic_output
-from ._load import RawRecording, parse_table, read_text, resolve_units, zeros_to_nan
-from ._trial import Trial
+from ._raw import RawRecording, TrialLike, parse_table, read_text, resolve_units, zeros_to_nan
 
 __all__ = ["read_trc", "write_trc"]
 
@@ -102,7 +101,7 @@ def read_trc(file: Path, *, units: str | None = None) -> RawRecording:
     )
 
 
-def write_trc(trial: Trial, file: Path, *, overwrite: bool = False) -> None:
+def write_trc(trial: TrialLike, file: Path, *, overwrite: bool = False) -> None:
     """Write ``trial`` as a TRC in millimetres (6 decimals); missing samples are empty cells."""
     for lab in trial.labels:
         if any(ch in lab for ch in "\t\r\n"):

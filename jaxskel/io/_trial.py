@@ -15,17 +15,18 @@ from __future__ import annotations
 import dataclasses
 import types
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .._errors import InputError
 from .._math.padding import bucket_size
+from ._raw import UP_AXES
 
 __all__ = ["Trial", "UP_AXES", "rotation_between_axes"]
 
 #: Axis names accepted for :attr:`Trial.up_axis` ("unknown" when a file does not say).
-UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "unknown")
 
 _AXIS_VECTORS = {
     "x": (1.0, 0.0, 0.0),
@@ -311,6 +312,16 @@ class Trial:
         The write is atomic (temporary file, then rename). An existing file is
         only replaced with ``overwrite=True``.
         """
-        from ._load import save_trial
-
-        save_trial(self, path, overwrite=overwrite)
+        file = Path(path)
+        suffix = file.suffix.lower()
+        if suffix == ".c3d":
+            from ._c3d import write_c3d as write
+        elif suffix == ".trc":
+            from ._trc import write_trc as write
+        elif suffix in (".h5", ".hdf5"):
+            from ._h5 import write_h5 as write
+        else:
+            raise InputError(
+                f"cannot write {file}: unknown file type {file.suffix!r}; supported: .c3d, .h5, .hdf5, .trc"
+            )
+        write(self, file, overwrite=overwrite)
