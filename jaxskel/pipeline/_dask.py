@@ -70,11 +70,11 @@ def _fit_group(
 ) -> list[tuple[int, dict[str, Any], str]]:
     """Worker task: fit a group of trials in-process; return (index, row, output) per trial."""
     from .._runtime.compile_cache import enable_compile_cache
-    from ._batch import _default_devices, _Item, run_local
+    from ._local import default_devices, Item, run_local
 
     enable_compile_cache()
     items = [
-        _Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out))
+        Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out))
         for index, name, subject, inputs, out in packed
     ]
     rows: list[tuple[int, dict[str, Any], str]] = []
@@ -84,7 +84,7 @@ def _fit_group(
 
     run_local(
         items, options, bones=bones, signatures=signatures, batch_size=batch_size, jobs=2,
-        devices=_default_devices("auto"), keep_results=False, on_outcome=on_outcome,
+        devices=default_devices("auto"), keep_results=False, on_outcome=on_outcome,
     )
     return rows
 
@@ -107,7 +107,7 @@ def run_distributed(
         raise InputError(
             'a scheduler needs Dask distributed: pip install "jaxskel[distributed]" (or "dask[distributed]")'
         ) from None
-    from ._batch import TrialOutcome, _failed
+    from ._local import TrialOutcome, failed
 
     own = not isinstance(scheduler, Client)
     try:
@@ -137,7 +137,7 @@ def run_distributed(
                 rows = fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker fails its trials only
                 for it in group:
-                    on_outcome(it, _failed(it, RuntimeError(f"Dask task failed: {type(exc).__name__}: {exc}"), 0.0))
+                    on_outcome(it, failed(it, RuntimeError(f"Dask task failed: {type(exc).__name__}: {exc}"), 0.0))
                 continue
             for index, row, trace in rows:
                 it = by_index[index]
