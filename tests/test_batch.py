@@ -220,13 +220,13 @@ def test_every_jax_stage_of_a_batch_runs_under_the_device_lock(monkeypatch, tmp_
     XLA:CPU executions at once hang for good. Every call of the segment poses, from any
     of the batch's threads, must hold the lock (checked, not timed: a hang is a race)."""
     from jaxskel.joints import _anchored_centres
-    from jaxskel.pipeline import _batch
+    from jaxskel.pipeline import _local
 
     calls: list[tuple[str, bool]] = []  # the pose check imports the function from here when called
     real = _anchored_centres._segment_poses
 
     def guarded(*args, **kwargs):
-        calls.append((__import__("threading").current_thread().name, _batch.DEVICE_LOCK._is_owned()))
+        calls.append((__import__("threading").current_thread().name, _local.DEVICE_LOCK._is_owned()))
         return real(*args, **kwargs)
 
     monkeypatch.setattr(_anchored_centres, "_segment_poses", guarded)
