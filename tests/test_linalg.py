@@ -84,7 +84,7 @@ def test_jacobi_eigenvectors_match_numpy():
 
 
 # ------------------------------------------------------------------ jaxskel._math.geometry
-# Moved unchanged from tests/test_rigid_ik.py (the skeleton stage), whose tests take their
+# Moved unchanged from tests/skeleton/test_rigid_ik.py (the skeleton stage), whose tests take their
 # references from scipy (tests/helpers.py); a unit test of the rotation kit, for tests/_math/.
 def test_horn_alignment_is_a_proper_rotation_even_for_mirrored_clouds():
     """Kabsch's sign correction (det3 of U and V^T) on clouds of 3-6 points: the exact pose

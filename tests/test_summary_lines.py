@@ -4,7 +4,7 @@ jaxskel.joints._near_ties and the attachments of jaxskel.joints._attachments as 
 
 Unit tests of the result stage's internals: they belong in tests/result/, beside that
 stage, and wait here (moved unchanged from tests/test_topology.py and
-tests/test_determination.py) until that folder's owner takes them in. The summary's
+tests/test_determination.py, now tests/joints/) until that folder's owner takes them in. The summary's
 wording is also checked end to end through ``SkeletonResult.summary()`` in
 tests/test_topology.py and tests/joints/test_determination.py.
 """
