@@ -7,7 +7,6 @@ import pytest
 from helpers import random_rotation
 
 import jaxskel  # noqa: F401  (x64)
-from jaxskel._math.geometry import det3, horn_align
 from jaxskel._math.linalg import cholesky, spd_solve
 
 
@@ -84,12 +83,15 @@ def test_jacobi_eigenvectors_match_numpy():
 
 
 # ------------------------------------------------------------------ jaxskel._math.geometry
-# Moved unchanged from tests/skeleton/test_rigid_ik.py (the skeleton stage), whose tests take their
-# references from scipy (tests/helpers.py); a unit test of the rotation kit, for tests/_math/.
+# Moved from tests/test_rigid_ik.py (now tests/skeleton/, whose tests take their references
+# from scipy in tests/helpers.py): a unit test of the rotation kit, for tests/_math/. Its
+# import is the test's own, so that a kit renamed under it fails this test alone.
 def test_horn_alignment_is_a_proper_rotation_even_for_mirrored_clouds():
     """Kabsch's sign correction (det3 of U and V^T) on clouds of 3-6 points: the exact pose
     is recovered, and a mirrored cloud, which the unconstrained SVD solution would fit
     by a reflection (det -1), still gets a rotation. det3 agrees with numpy's LU det."""
+    from jaxskel._math.geometry import det3, horn_align
+
     rng = np.random.default_rng(3)
     m = rng.normal(size=(200, 3, 3))
     np.testing.assert_allclose(np.asarray(det3(jnp.asarray(m))), np.linalg.det(m), rtol=1e-10, atol=1e-12)
