@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from helpers import matrix_to_quat
+
 from jaxskel import synth
-from jaxskel._math.geometry import matrix_to_quat
 
 
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ from pathlib import Path
 # compilation cache on for the rest of that process (in ~/.cache/jaxskel/jax unless
 # JAXSKEL_CACHE_DIR says otherwise). Tests should neither read programs cached by other
 # code versions nor fill the developer's cache; the cache itself is tested in subprocesses
-# with their own directory (test_fit_cli.py). Set JAXSKEL_CACHE_DIR to test with a cache.
+# with their own directory (tests/_runtime/test_compile_cache.py). Set JAXSKEL_CACHE_DIR to test with a cache.
 os.environ.setdefault("JAXSKEL_CACHE_DIR", "")
 
 import gc

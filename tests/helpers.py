@@ -119,3 +119,62 @@ def same_grouping_up_to_joint_markers(labels, groups, truth, tol: float) -> bool
     whole in a group of its own (:func:`whole_segment_homes`, one to one), and no other group."""
     home = whole_segment_homes(labels, groups, truth, tol)
     return home is not None and len(set(home.values())) == len(home) == int(np.max(groups)) + 1
+
+
+# ------------------------------------------------------------------ rotations (scipy)
+# Independent references for the tests: rotations come from scipy, never from jaxskel's
+# own rotation kit (jaxskel._math), which has unit tests of its own.
+def rotvec_to_matrix(rotvec) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (scipy, independent of jaxskel)."""
+    from scipy.spatial.transform import Rotation
+
+    rotvec = np.asarray(rotvec, dtype=float)
+    return Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(*rotvec.shape[:-1], 3, 3)
+
+
+def matrix_to_quat(m) -> np.ndarray:
+    """Unit quaternions (..., 4), scalar first, of rotation matrices (..., 3, 3) (scipy).
+
+    The sign is jaxskel's: ``w >= 0``; where ``w`` is 0 (half turns), the component of the
+    largest of m00, m11, m22 (x, y, z respectively) is positive (Shepperd's method)."""
+    from scipy.spatial.transform import Rotation
+
+    m = np.asarray(m, dtype=float)
+    flat = m.reshape(-1, 3, 3)
+    q = Rotation.from_matrix(flat).as_quat(scalar_first=True)
+    diag = np.stack([np.trace(flat, axis1=1, axis2=2), flat[:, 0, 0], flat[:, 1, 1], flat[:, 2, 2]], axis=-1)
+    pick = np.argmax(diag, axis=-1)
+    q *= np.where(q[np.arange(len(q)), pick] < 0, -1.0, 1.0)[:, None]
+    q *= np.where(q[:, 0] < 0, -1.0, 1.0)[:, None]
+    return q.reshape(*m.shape[:-2], 4)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4), scalar first (scipy; scale divided out)."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(q, dtype=float)
+    return Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(*q.shape[:-1], 3, 3)
+
+
+def horn_align(source, target, weights=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` minimising ``sum_i w_i |R source_i + t - target_i|^2`` over proper rotations
+    (Kabsch by numpy's SVD, reflections corrected); points of zero weight are ignored."""
+    source, target = np.asarray(source, dtype=float), np.asarray(target, dtype=float)
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mu_s, mu_t = w @ source, w @ target
+    cov = np.einsum("n,ni,nj->ij", w, target - mu_t, source - mu_s)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0
+    rot = (u * np.array([1.0, 1.0, d])) @ vt
+    return rot, mu_t - rot @ mu_s
+
+
+# ------------------------------------------------------------------ fitted joints
+def true_joint_index(result, trial, truth, j) -> int:
+    """The true joint that fitted joint ``j`` stands for (its segments mapped by :func:`segment_map`)."""
+    m = segment_map(result, trial, truth)
+    p, c = result.edges[j]
+    key = frozenset((m[int(p)], m[int(c)]))
+    return [i for i, e in enumerate(truth.edges) if frozenset(map(int, e)) == key][0]

@@ -203,6 +203,8 @@ def test_programs_are_dropped_near_the_mapping_limit_and_the_batch_is_unchanged(
     fit_batch drops JAX's compiled programs before it solves the next batch, says so once,
     and the trial's fit is what it was with the programs kept."""
     from jaxskel._runtime import map_limit as _map_limit
+    # Kept: a process near vm.max_map_count, simulated (short of exhausting the mappings,
+    # the only way there), and the per-process "said once" flag reset for this test.
     monkeypatch.setattr(_map_limit, "RELEASE_FRACTION", 0.0)  # every count is near the limit
     monkeypatch.setitem(_map_limit._state, "warned", False)
     with pytest.warns(RuntimeWarning, match="vm.max_map_count") as caught:
@@ -229,6 +231,8 @@ def test_every_jax_stage_of_a_batch_runs_under_the_device_lock(monkeypatch, tmp_
         calls.append((__import__("threading").current_thread().name, _local.DEVICE_LOCK._is_owned()))
         return real(*args, **kwargs)
 
+    # Kept: an instrument (it records whether the lock is held and calls through), the only
+    # way to check a race by ownership instead of by timing.
     monkeypatch.setattr(_anchored_centres, "_segment_poses", guarded)
     body = synth.full_body()
     trials = [synth.simulate(body, duration=4.0, seed=70 + i, noise=0.001)[0] for i in range(4)]

@@ -14,10 +14,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxskel import InputError, synth
-from jaxskel.result._bvh import export_bvh, read_bvh
-from jaxskel.skeleton._ik import Motion
-from jaxskel.segment._names import names_from_markers
-from jaxskel.skeleton._rigid_fit import Skeleton
+from jaxskel.result import export_bvh, read_bvh
+from jaxskel.segment import names_from_markers
+from jaxskel.skeleton import Motion, Skeleton
 
 
 def _truth_skeleton_and_motion(body, duration=1.0, seed=0):

@@ -5,7 +5,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel.segment._spectral import combine_trials
+from jaxskel.segment import combine_trials
 
 
 def smooth_trial(rate=120.0, seconds=6.0, seed=0):

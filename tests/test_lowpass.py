@@ -9,8 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import random_rotation
-from test_topology import true_joint_index
+from helpers import random_rotation, true_joint_index
 
 import jaxskel
 from jaxskel import synth

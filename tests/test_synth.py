@@ -7,7 +7,7 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel.io._trial import rotation_between_axes
+from jaxskel.io import rotation_between_axes
 from scipy.spatial.transform import Rotation
 
 RATE = 60.0

@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-import jaxskel
 from jaxskel import InputError, Trial
-from jaxskel.io._trial import rotation_between_axes
+from jaxskel.io import rotation_between_axes
 
 
 def make(f=10, m=4, seed=0):
@@ -72,7 +71,7 @@ def test_selection():
 def test_selecting_frames_of_combined_trials_keeps_their_bounds_true():
     """``trial_bounds`` (trials fitted together) follow a frame selection: cleaning and IK
     read them, and stale ranges would cut or bridge the wrong frames."""
-    from jaxskel.segment._spectral import combine_trials
+    from jaxskel.segment import combine_trials
 
     both = combine_trials([make(10), make(5, seed=1), make(10, seed=2)])
     assert both.metadata["trial_bounds"] == ((0, 10), (10, 15), (15, 25))
@@ -88,7 +87,7 @@ def test_arrays_have_no_nan_and_padding_keeps_data():
     x, mask = t.to_arrays()
     assert np.isfinite(x).all() and (x[~mask] == 0).all()
     xp, mp = t.padded()
-    assert xp.shape == (jaxskel._math.padding.bucket_size(10), 8, 3)
+    assert xp.shape == (16, 8, 3)  # 10 frames, 4 markers: the smallest buckets, 16 and 8
     np.testing.assert_array_equal(xp[:10, :4], x)
     assert mp[:10, :4].sum() == mask.sum() and mp.sum() == mask.sum()
     with pytest.raises(InputError):
@@ -98,12 +97,11 @@ def test_arrays_have_no_nan_and_padding_keeps_data():
 @pytest.mark.parametrize("src", ["x", "y", "z", "-x", "-y", "-z"])
 @pytest.mark.parametrize("dst", ["z", "y", "-z"])
 def test_rotation_between_axes_is_proper_and_maps_axis(src, dst):
-    from jaxskel.io._trial import _AXIS_VECTORS
-
+    axis = dict(zip(("x", "y", "z"), np.eye(3))) | {f"-{k}": -v for k, v in zip(("x", "y", "z"), np.eye(3))}
     r = rotation_between_axes(src, dst)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(r) == pytest.approx(1.0)
-    np.testing.assert_allclose(r @ np.array(_AXIS_VECTORS[src]), _AXIS_VECTORS[dst], atol=1e-12)
+    np.testing.assert_allclose(r @ axis[src], axis[dst], atol=1e-12)
 
 
 def test_to_up_axis_preserves_distances():
@@ -118,6 +116,8 @@ def test_to_up_axis_preserves_distances():
 
 
 def test_bucket_sizes_are_few_and_sufficient():
-    sizes = {jaxskel._math.padding.bucket_size(n) for n in range(1, 5000)}
-    assert all(jaxskel._math.padding.bucket_size(n) >= n for n in range(1, 5000))
+    # the frame counts Trial.padded() rounds up to (its bucket sizes)
+    bucket = {n: Trial(np.zeros((n, 1, 3)), ["m"], 100.0).padded()[0].shape[0] for n in range(1, 5000)}
+    sizes = set(bucket.values())
+    assert all(bucket[n] >= n for n in range(1, 5000))
     assert len(sizes) <= 2 * 9 + 1  # two per octave from 16 to 8192

@@ -45,6 +45,11 @@ def _saved(folder):
     return sorted(p.name for p in folder.glob("*.jaxexport"))
 
 
+# The monkeypatches here: jax.export.export replaced by a guard that fails if called (an
+# instrument: the only way to see that a program was loaded, not traced again) or by a
+# failure (fault injection: a program XLA cannot export); the package's source digest, the
+# traced libraries' versions and MAX_BYTES set for the test (an edit of the source, an
+# upgrade of optimistix, a full folder: what a test cannot otherwise bring about).
 def _no_export(monkeypatch):
     def refuse(*_, **__):
         raise AssertionError("traced and exported again")

@@ -6,13 +6,12 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import REAL, partition, random_rotation
+from helpers import REAL, horn_align, partition, random_rotation
 from scipy.optimize import linear_sum_assignment
 
 import jaxskel
 from jaxskel import DegenerateMotionError, InputError, synth
-from jaxskel._math.geometry import horn_align
-from jaxskel.relabel._merge import needs_merging
+from jaxskel.relabel import needs_merging
 from jaxskel.relabel._assign import ChainProblem, spectral_clusters
 from jaxskel.relabel._fragments import split_fragments
 from jaxskel.relabel._distance import sampled_min_distance

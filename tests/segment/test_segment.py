@@ -16,7 +16,8 @@ from helpers import (
 
 import jaxskel
 from jaxskel import synth
-from jaxskel.segment._spectral import _mend, _score, distance_std, white_noise
+from jaxskel.segment import distance_std
+from jaxskel.segment._spectral import _mend, _score, white_noise
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -291,7 +292,7 @@ def test_a_recording_that_moves_no_joint_is_one_segment_and_the_fit_says_why(tmp
     # the paper's eigengap alone still splits it, and no pair can then be jointed: said so
     assert jaxskel.segment.segment_markers(still, rigid_ratio=None).n_segments >= 2
     with pytest.raises(jaxskel.DegenerateMotionError, match="can be jointed.*not exercised"):
-        jaxskel.fit_skeleton(still, segment_kwargs={"rigid_ratio": None})
+        jaxskel.fit_skeleton(still, rigid_ratio=None)
     # a given count is the user's: kept
     assert jaxskel.segment.segment_markers(still, 3).n_segments == 3
     moving, _ = synth.simulate(synth.full_body(seed=0), duration=6.0, seed=0, noise=0.002)

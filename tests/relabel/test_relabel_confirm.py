@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import REAL, partition
+from helpers import REAL, partition, quat_to_matrix
 from test_relabel import AUTO, _load, assert_no_cooccurring_merge, label_accuracy
 
 import jaxskel
@@ -155,7 +155,7 @@ def test_fragment_offsets_match_brute_force():
     n, offset, mean_sq = (
         np.asarray(a) for a in fragment_offsets(np.where(present[..., None], x, 0.0), present, q, p, posed)
     )
-    rot = np.asarray(jaxskel._math.geometry.quat_to_matrix(q))
+    rot = quat_to_matrix(q)
     for kk in range(k):
         for ss in range(2):
             t = np.flatnonzero(present[:, kk] & posed[:, ss])

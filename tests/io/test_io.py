@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 from jaxskel import InputError, SchemaError, Trial, UnitsWarning, load, save_trial
+from jaxskel.io import infer_up_axis, rotation_between_axes
 from jaxskel.io._atomic import atomic_output
-from jaxskel.io._load import infer_up_axis
-from jaxskel.io._trial import rotation_between_axes
 
 # ----------------------------------------------------------------- helpers
 
@@ -226,6 +225,7 @@ def test_failing_write_leaves_existing_file_intact(tmp_path, monkeypatch):
     def broken_create_dataset(self, *args, **kwargs):
         raise RuntimeError("simulated failure half-way through the write")
 
+    # Fault injection, the only way to make a write fail half-way through on purpose.
     monkeypatch.setattr(h5py.Group, "create_dataset", broken_create_dataset)
     with pytest.raises(RuntimeError, match="half-way"):
         save_trial(trial.replace(rate=1.0), path, overwrite=True)

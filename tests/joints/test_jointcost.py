@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxskel import DegenerateMotionError, InputError
-from jaxskel.joints._cost import solve_joint, solve_joints
+from jaxskel.joints import solve_joint, solve_joints
 
 NOISE = 1e-3
 FRAMES = 400

@@ -14,7 +14,6 @@ import jaxskel
 from jaxskel import synth
 from jaxskel.joints._anchored_centres import MIN_EXERCISE_DEG
 from jaxskel.joints._determination import UNDETERMINED_RESOLUTION
-from jaxskel.result._summary import undetermined_lines
 
 NAN3 = [np.nan] * 3
 
@@ -121,35 +120,6 @@ def test_the_least_determined_direction_is_read_against_the_markers():
     sk.diagnostics["anchored"]["radial_cosines"] = np.array([[0.9, 0.1, 0.1], [0.2, 0.3, 0.9], NAN3])
     np.testing.assert_allclose(jaxskel.joints._determination.radial_share(sk), [0.9, 0.3, np.nan])
     np.testing.assert_array_equal(jaxskel.joints._determination.loose_directions(sk), [1, 1, 2])
-
-
-@pytest.mark.parametrize(
-    ("resolution", "radial", "exercise", "words"),
-    [
-        ([0.3, 0.05, 0.01], 0.95, 20.0, "needs a larger range of rotation of B about its joint with A: the recorded "
-         "sweep (20.0 deg RMS) is too short an arc to fix how far the centre lies from the markers of B"),
-        ([0.3, 0.05, 0.01], 0.2, 20.0, "needs rotation of B about its joint with A in more directions: the recorded "
-         "sweep (20.0 deg RMS) turns it mainly about one axis, along which the centre can slide"),
-        ([0.3, 0.2, 0.01], 0.95, 20.0, "needs rotation of B about its joint with A over a larger range and in more "
-         "directions: the recorded sweep (20.0 deg RMS) leaves the centre loose along two directions"),
-        ([0.3, 0.05, 0.01], 0.7, 20.0, "loose along a direction neither along nor across its markers"),
-        ([0.3, 0.2, 0.1], 0.95, 1.0, "needs rotation of B about its joint with A: the recording barely turns it "
-         "(sweep 1.0 deg RMS)"),
-    ],
-)
-def test_an_undetermined_joint_is_told_the_motion_it_lacks(resolution, radial, exercise, words):
-    """Two segments A (the anchor) and B: the words follow the weakest direction's reading."""
-    sk = SimpleNamespace(
-        n_joints=1, bones=np.zeros((0, 2), int), edges=np.array([[0, 1]]),
-        diagnostics={"hinge_axis": [NAN3], "anchored": {
-            "resolution": np.array([resolution]), "bone_cosines": np.full((1, 1, 3), np.nan),
-            "exercise": np.array([exercise]), "anchor": np.array([0]), "radial_cosines": np.array([[radial, 0, 0]]),
-        }},
-    )
-    lines = undetermined_lines([0], ("A", "B"), sk)
-    assert lines[0].startswith("undetermined: the recording fixes these centres only to within more than 100 mm")
-    assert lines[1].startswith("  A-B: ") and words in lines[1]
-    assert "range-of-motion trial" in lines[-1]
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,13 @@ import pytest
 
 import jaxskel
 from jaxskel._runtime import map_limit as _map_limit
+
+# The monkeypatches here stand in for the kernel: a process near vm.max_map_count (a
+# lower RELEASE_FRACTION, or map_usage returning a count near the limit), or a system
+# whose /proc does not say (map_usage returning None); short of exhausting the process's
+# mappings, that is the only way to get there. "Said once" is per process, so the once-
+# flag is reset for the test, and jax.clear_caches is replaced by a counter where
+# dropping the test process's programs is not what is tested.
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/maps is Linux's")
 
 

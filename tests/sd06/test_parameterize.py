@@ -9,17 +9,16 @@ import h5py
 import numpy as np
 import pytest
 from calibration_motions import main_movements, perturbed, rotvec_to_matrix, truth_arrays
+from helpers import matrix_to_quat
 from matplotlib.figure import Figure
 
 from jaxskel import DegenerateMotionWarning, InputError, synth
 
-from jaxskel.sd06 import Normalization, Parameterization, parameterize
-from jaxskel._math.geometry import matrix_to_quat
-from jaxskel.sd06._normalize import normalize_arrays
-from jaxskel.sd06._parameterize import parameterize_arrays, parameterize_normalized, write_parameters
-from jaxskel.plots._parameter_plots import plot_angles, plot_joint_spheres, plot_speed_histograms
+from jaxskel.plots import plot_angles, plot_joint_spheres, plot_speed_histograms
+from jaxskel.sd06 import Normalization, Parameterization, normalize_arrays, parameterize, parameterize_arrays
+from jaxskel.sd06._parameterize import parameterize_normalized, write_parameters
 
-RATE = 30.0  # main_movements at 30 Hz: 420 frames, the bucket of tests/test_normalize.py
+RATE = 30.0  # main_movements at 30 Hz: 420 frames, the bucket of tests/sd06/test_normalize.py
 BODY = synth.full_body(seed=0)
 KIND = np.array(BODY.joint_types)
 HINGES = np.flatnonzero(KIND == "hinge")

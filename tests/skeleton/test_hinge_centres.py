@@ -4,12 +4,11 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import random_rotation
+from helpers import random_rotation, rotvec_to_matrix
 
 import jaxskel
 from jaxskel import synth
 from jaxskel.skeleton._hinge_centres import MAX_OFF_AXIS, hinge_axes, hinge_shifts
-from jaxskel.synth._rotation import rotvec_to_matrix
 
 
 def _rotations(rng, n):
@@ -121,7 +120,7 @@ def body_both():
 
 
 def _hinge_errors(result, trial, truth):
-    from test_topology import true_joint_index
+    from helpers import true_joint_index
 
     out = {}
     for j in range(len(result.edges)):
@@ -175,7 +174,7 @@ def test_a_slide_the_refined_poses_contradict_is_undone():
     slides: every joint within 11 mm (median), the ankle 10.5 mm."""
     body = synth.full_body(seed=47)
     trial, truth = synth.simulate(body, duration=30.0, seed=47, noise=0.002, gaps=14, gap_length=(0.5, 2.0))
-    from test_topology import true_joint_index
+    from helpers import true_joint_index
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # IK max_steps in frames with under-determined segments

@@ -9,7 +9,8 @@ import pytest
 
 import jaxskel
 from jaxskel import synth
-from jaxskel.segment._names import group_name, names_from_markers, segment_names
+from jaxskel.segment import names_from_markers
+from jaxskel.segment._names import group_name, segment_names
 
 
 @pytest.mark.parametrize(

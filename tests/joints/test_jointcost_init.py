@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from test_jointcost import _rotations, pair, rmse
 
-from jaxskel.joints._cost import solve_joint
+from jaxskel.joints import solve_joint
 from jaxskel.joints._cost_init import consistency_start
 
 

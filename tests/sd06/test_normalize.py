@@ -9,15 +9,15 @@ import h5py
 import numpy as np
 import pytest
 from calibration_motions import main_movements, perturbed, rotvec_to_matrix, truth_arrays, with_default_pose
+from helpers import matrix_to_quat, quat_to_matrix
 
 from jaxskel import DegenerateMotionError, InputError, synth
 
-from jaxskel.sd06 import normalize
-from jaxskel._math.geometry import matrix_to_quat, quat_to_matrix
-from jaxskel.sd06._normalize import default_pose_terms, normalize_arrays, write_normalized
+from jaxskel.sd06 import normalize, normalize_arrays
+from jaxskel.sd06._normalize import default_pose_terms, write_normalized
 
 RATE = 30.0
-DURATION = 14.0  # 420 frames: the same bucket as tests/test_parameterize.py
+DURATION = 14.0  # 420 frames: the same bucket as tests/sd06/test_parameterize.py
 BODY = synth.full_body(seed=0)
 
 

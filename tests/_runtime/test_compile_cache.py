@@ -1,0 +1,61 @@
+"""The persistent XLA compilation cache of the command line (jaxskel._runtime.compile_cache):
+locked, shared by processes, kept apart per CPU and jaxlib (moved from tests/test_fit_cli.py)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from jaxskel._runtime.compile_cache import machine_cache_dir
+
+_CACHE_PROBE = """
+import jax, jax.numpy as jnp
+from jaxskel._runtime.compile_cache import CACHE_MAX_BYTES, enable_compile_cache
+hits = []
+jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
+enable_compile_cache()
+assert jax.config.jax_compilation_cache_max_size == CACHE_MAX_BYTES
+print(float(jax.jit(lambda x: jnp.sin(x) * 3.0 + x**2)(1.5)), len(hits))
+"""
+
+
+def test_compile_cache_is_locked_and_serves_a_second_process(tmp_path):
+    """The CLI's persistent cache: bounded (so JAX locks every entry read and write, for
+    parallel runs sharing it), filled by one process and hit by the next.
+    ``JAXSKEL_CACHE_DIR=""`` turns it off."""
+    env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", _CACHE_PROBE], env=env, capture_output=True, text=True,
+                           timeout=120) for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), [r.stderr[-2000:] for r in runs]
+    (value0, hits0), (value1, hits1) = (r.stdout.split() for r in runs)
+    assert value0 == value1 and int(hits0) == 0 and int(hits1) >= 1
+    (machine,) = (tmp_path / "cache").iterdir()  # one subdirectory: this CPU and jaxlib
+    assert machine == machine_cache_dir(tmp_path / "cache")
+    entries = list(machine.glob("*-cache"))
+    assert entries and (machine / ".lockfile").exists()
+    off = subprocess.run([sys.executable, "-c", _CACHE_PROBE.replace("assert jax.config", "assert not jax.config")],
+                         env={**env, "JAXSKEL_CACHE_DIR": ""}, capture_output=True, text=True, timeout=120)
+    assert off.returncode == 0, off.stderr[-2000:]
+
+
+def test_compile_cache_is_kept_apart_per_cpu_and_jaxlib(monkeypatch):
+    """XLA:CPU compiles for the host's instruction set and JAX's cache key leaves it out,
+    so a cache shared by different CPUs (a cluster's home directory) must not mix them."""
+    from jaxskel._runtime import compile_cache
+    base = Path("/shared/cache")
+    # Other machines and another jaxlib, simulated: the only way to see the key change
+    # without them. The real identity is read after monkeypatch.undo() below.
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    here = compile_cache.machine_cache_dir(base)
+    assert here.parent == base and here == compile_cache.machine_cache_dir(base)  # stable
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2")
+    assert compile_cache.machine_cache_dir(base) != here  # a CPU without AVX-512
+    monkeypatch.setattr(compile_cache, "cpu_identity", lambda: "model name=EPYC|flags=avx avx2 avx512f")
+    import jaxlib
+
+    monkeypatch.setattr(jaxlib, "__version__", "0.0.1")
+    assert compile_cache.machine_cache_dir(base) != here  # another jaxlib
+    # the real identity names the instruction set (x86 flags or aarch64 features)
+    monkeypatch.undo()
+    identity = compile_cache.cpu_identity()
+    assert identity and ("flags=" in identity or "features=" in identity or "processor=" in identity)
