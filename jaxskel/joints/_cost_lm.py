@@ -59,7 +59,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._math.linalg import spd_solve
-from .._math.sym3 import SYM, UPPER, sym_apply, sym_inverse
+from .._math.planes import SYM, UPPER, sym_apply, sym_inverse
 
 __all__ = ["PairProblem", "block_solve", "levenberg_marquardt", "inv3"]
 
@@ -96,7 +96,7 @@ def inv3(a: Float[Array, "*b 3 3"]) -> Float[Array, "*b 3 3"]:
 # The hot loop keeps every 3-vector as three (F,) or (F, K) planes instead of a trailing
 # axis of 3: XLA:CPU vectorises along the minor axis, and a minor axis of 3 wastes most
 # of each SIMD register (timing: docs/bench/evidence_from_docstrings.md).
-# A symmetric 3x3 block is its six upper-triangle planes (jaxskel._math.sym3).
+# A symmetric 3x3 block is its six upper-triangle planes (jaxskel._math.planes).
 
 
 def _planes(x: Float[Array, "... 3"]) -> tuple[Array, Array, Array]:

@@ -6,7 +6,8 @@ This is the fast path of :func:`jaxskel.skeleton.inverse_kinematics`. It minimis
 is organised for a CPU:
 
 * **Layout.** Every quantity is a tuple of scalar components (structure of arrays), each
-  an array whose *last* axis is the frames: a 3x3 matrix is nine arrays. All arithmetic
+  an array whose *last* axis is the frames: a 3x3 matrix is nine arrays (the algebra of
+  :mod:`jaxskel._math.planes` and :mod:`jaxskel._math.rotation_planes`). All arithmetic
   is then elementwise over frames, which XLA fuses into few vectorised loops, with no
   small matrix products, concatenations or batched linear algebra. Markers live in the
   padded ``(segment, slot)`` layout, so a segment's sums run over its few slots, and
@@ -54,7 +55,34 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._math.padding import bucket_size
-from .._math.sym3 import SYM, UPPER, sym_apply, sym_inverse
+from .._math.planes import (
+    UPPER,
+    cross_left,
+    cross_right,
+    mmul,
+    mtmul_sym,
+    mtvec,
+    mvec,
+    sym_apply,
+    sym_full,
+    sym_inverse,
+    sym_mul,
+    vadd,
+    vcross,
+    vdot,
+    vscale,
+    vsub,
+)
+from .._math.rotation_planes import (
+    axis_angle_to_quat,
+    horn_quat,
+    inverse_right_jacobian,
+    quat_conjugate,
+    quat_multiply,
+    quat_normalize,
+    quat_to_axis_angle,
+    unit_quat_to_matrix,
+)
 from .._runtime import program_cache as _program_cache
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
@@ -75,7 +103,6 @@ NEWTON_RTOL = 1e-5
 NEWTON_GAIN = 0.75
 #: ... and only if it lowered the energy by less than this fraction.
 NEWTON_DROP = 0.5
-_TINY = 1e-30
 
 
 # ------------------------------------------------------------------ the tree plan
@@ -286,140 +313,6 @@ def _barrier(model: BatchModel, x):
     return jax.tree_util.tree_map(lambda a: a / model.unit, x)
 
 
-# ------------------------------------------------------------ algebra on tuples
-def _vadd(a, b):
-    return tuple(x + y for x, y in zip(a, b))
-
-
-def _vsub(a, b):
-    return tuple(x - y for x, y in zip(a, b))
-
-
-def _vscale(s, a):
-    return tuple(s * x for x in a)
-
-
-def _vdot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _vcross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _mvec(m, v):
-    """General 3x3 (9-tuple, row-major) times a vector."""
-    return tuple(m[3 * i] * v[0] + m[3 * i + 1] * v[1] + m[3 * i + 2] * v[2] for i in range(3))
-
-
-def _mtvec(m, v):
-    return tuple(m[j] * v[0] + m[3 + j] * v[1] + m[6 + j] * v[2] for j in range(3))
-
-
-def _mmul(a, b):
-    return tuple(
-        a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j] for i in range(3) for j in range(3)
-    )
-
-
-def _mtmul_sym(a, b):
-    """Upper triangle of ``a^T b`` (for a result known to be symmetric)."""
-    return tuple(a[i] * b[j] + a[3 + i] * b[3 + j] + a[6 + i] * b[6 + j] for i, j in UPPER)
-
-
-def _sfull(s):
-    return tuple(s[SYM[i][j]] for i in range(3) for j in range(3))
-
-
-def _smul(s, m):
-    """Symmetric (6-tuple) times general."""
-    return tuple(
-        s[SYM[i][0]] * m[j] + s[SYM[i][1]] * m[3 + j] + s[SYM[i][2]] * m[6 + j] for i in range(3) for j in range(3)
-    )
-
-
-def _cross_right(m, r):
-    """``m @ (-[r]x)``: column j of the product is ``m (e_j x r)``."""
-    out = []
-    for i in range(3):
-        a0, a1, a2 = m[3 * i], m[3 * i + 1], m[3 * i + 2]
-        out += [a2 * r[1] - a1 * r[2], a0 * r[2] - a2 * r[0], a1 * r[0] - a0 * r[1]]
-    return tuple(out)
-
-
-def _cross_left(r, m):
-    """``[r]x @ m``: column j of the product is ``r x m[:, j]``."""
-    cols = [_vcross(r, (m[j], m[3 + j], m[6 + j])) for j in range(3)]
-    return tuple(cols[j][i] for i in range(3) for j in range(3))
-
-
-def _qmul(p, q):
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
-    return (
-        pw * qw - px * qx - py * qy - pz * qz,
-        pw * qx + px * qw + py * qz - pz * qy,
-        pw * qy - px * qz + py * qw + pz * qx,
-        pw * qz + px * qy - py * qx + pz * qw,
-    )
-
-
-def _qconj(q):
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _qnormalize(q):
-    n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-    s = jnp.where(q[0] < 0, -1.0, 1.0) * jax.lax.rsqrt(jnp.where(n2 > 0, n2, 1.0))
-    return tuple(s * c for c in q)
-
-
-def _qmatrix(q):
-    w, x, y, z = q
-    x2, y2, z2 = x + x, y + y, z + z
-    xx, yy, zz = x * x2, y * y2, z * z2
-    xy, xz, yz = x * y2, x * z2, y * z2
-    wx, wy, wz = w * x2, w * y2, w * z2
-    return (1 - yy - zz, xy - wz, xz + wy, xy + wz, 1 - xx - zz, yz - wx, xz - wy, yz + wx, 1 - xx - yy)
-
-
-def _qexp(v):
-    theta2 = _vdot(v, v)
-    small = theta2 < 1e-12
-    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
-    k = jnp.where(small, 0.5 - theta2 / 48.0, jnp.sin(0.5 * theta) / theta)
-    w = jnp.where(small, 1.0 - theta2 / 8.0, jnp.cos(0.5 * theta))
-    return (w, k * v[0], k * v[1], k * v[2])
-
-
-def _qlog(q):
-    """Rotation vector (angle in [0, pi]) of a unit quaternion."""
-    sign = jnp.where(q[0] < 0, -1.0, 1.0)
-    w = sign * q[0]
-    u = (sign * q[1], sign * q[2], sign * q[3])
-    s2 = _vdot(u, u)
-    small = s2 < 1e-12
-    s = jnp.sqrt(jnp.where(small, 1.0, s2))
-    k = jnp.where(small, 2.0 / jnp.where(w == 0, 1.0, w), 2.0 * jnp.arctan2(s, w) / s)
-    return _vscale(k, u)
-
-
-def _inverse_right_jacobian(e):
-    """``Jr^-1(e)`` as a 9-tuple: ``I + [e]x / 2 + c [e]x^2``."""
-    theta2 = _vdot(e, e)
-    small = theta2 < 1e-8
-    safe = jnp.where(small, 1.0, theta2)
-    theta = jnp.sqrt(safe)
-    c = jnp.where(small, 1.0 / 12.0 + theta2 / 720.0, 1.0 / safe - (1 + jnp.cos(theta)) / (2 * theta * jnp.sin(theta)))
-    x, y, z = e
-    # [e]x^2 = e e^T - |e|^2 I
-    return (
-        1.0 + c * (x * x - theta2), -0.5 * z + c * x * y, 0.5 * y + c * x * z,
-        0.5 * z + c * x * y, 1.0 + c * (y * y - theta2), -0.5 * x + c * y * z,
-        -0.5 * y + c * x * z, 0.5 * x + c * y * z, 1.0 + c * (z * z - theta2),
-    )  # fmt: skip
-
-
 # ------------------------------------------------------------ tree helpers
 def _rows(comps, idx):
     """Rows ``idx`` (traced) of each component (S, ...)."""
@@ -470,10 +363,10 @@ def _forward(model: BatchModel, t_root, rot):
     from the root translation (3 x (B,)) and rotations (9 x (S, B)):
     ``t = t_root + path @ d`` with ``d_c = R_parent(c) o_c0 - R_c o_c1``."""
     rp = _rows(rot, model.parent)
-    d = _vsub(_mvec(rp, model.joint_parent), _mvec(rot, model.joint_child))
+    d = vsub(mvec(rp, model.joint_parent), mvec(rot, model.joint_child))
     d = tuple(model.has_parent * c for c in d)
     trans = tuple(t[None] + jnp.dot(model.path, c, precision=jax.lax.Precision.HIGHEST) for t, c in zip(t_root, d))
-    ref = _vadd(trans, _mvec(rot, model.joint_child))
+    ref = vadd(trans, mvec(rot, model.joint_child))
     return trans, ref
 
 
@@ -486,14 +379,14 @@ def _markers(model: BatchModel, rot, trans):
 
 
 def _evaluate(model: BatchModel, x, w, t_root, q, prior, lam2) -> Evaluation:
-    rot = _barrier(model, _qmatrix(q))
+    rot = _barrier(model, unit_quat_to_matrix(q))
     trans, ref = _barrier(model, _forward(model, t_root, rot))
     fitted = _barrier(model, _markers(model, rot, trans))
-    err = _vsub(fitted, x)
+    err = vsub(fitted, x)
     lever = tuple(f - r[:, None] for f, r in zip(fitted, ref))
-    rel = _qmul(_qconj(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0))), q)
-    e_prior = _qlog(_qmul(_qconj(prior), rel))
-    energy = jnp.sum(_sum_slots(w * _vdot(err, err)), axis=0) + jnp.sum(lam2 * _vdot(e_prior, e_prior), axis=0)
+    rel = quat_multiply(quat_conjugate(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0))), q)
+    e_prior = quat_to_axis_angle(quat_multiply(quat_conjugate(prior), rel))
+    energy = jnp.sum(_sum_slots(w * vdot(err, err)), axis=0) + jnp.sum(lam2 * vdot(e_prior, e_prior), axis=0)
     rot, trans, ref, err, lever, e_prior, energy = _barrier(model, (rot, trans, ref, err, lever, e_prior, energy))
     return Evaluation(rot=rot, trans=trans, ref=ref, err=err, lever=lever, e_prior=e_prior, energy=energy)
 
@@ -504,11 +397,11 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     the turn of each segment, ``v`` the velocity of its reference point (for the root
     the translation increment); ``newton`` 1.0 adds the residual curvature."""
     u, r = ev.lever, ev.err
-    wu, wr = _barrier(model, (_vscale(w, u), _vscale(w, r)))
+    wu, wr = _barrier(model, (vscale(w, u), vscale(w, r)))
     weight = _sum_slots(w)
     f = tuple(_sum_slots(c) for c in wu)
     kmat = [_sum_slots(wu[i] * u[j]) for i, j in UPPER]  # sum w u u^T
-    g_w = tuple(_sum_slots(c) for c in _vcross(wu, r))
+    g_w = tuple(_sum_slots(c) for c in vcross(wu, r))
     g_v = tuple(_sum_slots(c) for c in wr)
     tr = kmat[0] + kmat[3] + kmat[5]
     # |w x u|^2 = w^T (|u|^2 I - u u^T) w; residual curvature sym(r u^T) - (r.u) I.
@@ -522,10 +415,10 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     h_wv = (zero, -f[2], f[1], f[2], zero, -f[0], -f[1], f[0], zero)  # [f]x
     h_vv = (weight, zero, zero, weight, zero, weight)
     # Prior: e_s moves by D_s (omega_s - omega_parent), D = Jr^-1(e) R^T.
-    jr = _barrier(model, _inverse_right_jacobian(ev.e_prior))
-    d = _mmul(jr, tuple(ev.rot[3 * j + i] for i in range(3) for j in range(3)))
-    p_mat = tuple(lam2 * c for c in _mtmul_sym(d, d))
-    b = tuple(lam2 * c for c in _mtvec(d, ev.e_prior))
+    jr = _barrier(model, inverse_right_jacobian(ev.e_prior))
+    d = mmul(jr, tuple(ev.rot[3 * j + i] for i in range(3) for j in range(3)))
+    p_mat = tuple(lam2 * c for c in mtmul_sym(d, d))
+    b = tuple(lam2 * c for c in mtvec(d, ev.e_prior))
     h_ww, h_wv, h_vv, g_w, g_v, p_mat, b, d = _barrier(model, (tuple(h_ww), h_wv, h_vv, g_w, g_v, p_mat, b, d))
 
     width = model.width
@@ -549,36 +442,36 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
         here = _slice(acc, start, width)
         hww, hwv, hvv, gw, gv, es = here[0:6], here[6:15], here[15:21], here[21:24], here[24:27], here[27:30]
         p, bb = _slice(p_pad, start, width), _slice(b_pad, start, width)
-        m = list(_vadd(hww, p))
+        m = list(vadd(hww, p))
         for k in (0, 3, 5):
             m[k] = m[k] + mu * jnp.abs(m[k]) + 1e-12
         m = tuple(jnp.where(valid > 0, c, e) for c, e in zip(m, eye6))
         minv, p, hwv = _barrier(model, (sym_inverse(m), p, hwv))
-        gh = _vadd(gw, bb)
-        y = _smul(minv, hwv)
+        gh = vadd(gw, bb)
+        y = sym_mul(minv, hwv)
         z = sym_apply(minv, gh)
-        zz = _smul(minv, _sfull(p))
+        zz = sym_mul(minv, sym_full(p))
         y, z, zz = _barrier(model, (y, z, zz))
-        qa = _vsub(p, _mtmul_sym(_sfull(p), zz))
-        qb = _smul(p, y)
-        qc = _vsub(hvv, _mtmul_sym(hwv, y))
-        ga = _vsub(sym_apply(p, z), bb)
-        gc = _vsub(gv, _mtvec(hwv, z))
+        qa = vsub(p, mtmul_sym(sym_full(p), zz))
+        qb = sym_mul(p, y)
+        qc = vsub(hvv, mtmul_sym(hwv, y))
+        ga = vsub(sym_apply(p, z), bb)
+        gc = vsub(gv, mtvec(hwv, z))
         pidx = jax.lax.dynamic_slice_in_dim(parent_pad, start, width)
-        rr = _vsub(_slice(ref_pad, start, width), _rows(ref_pad, pidx))
+        rr = vsub(_slice(ref_pad, start, width), _rows(ref_pad, pidx))
         qa, qb, qc, ga, gc, rr = _barrier(model, (qa, qb, qc, ga, gc, rr))
-        qbx = _cross_right(qb, rr)  # Qb X with X = -[rr]x
-        xqcx = _cross_left(rr, _cross_right(_sfull(qc), rr))  # X^T Qc X
+        qbx = cross_right(qb, rr)  # Qb X with X = -[rr]x
+        xqcx = cross_left(rr, cross_right(sym_full(qc), rr))  # X^T Qc X
         to_ww = [qa[k] + qbx[3 * i + j] + qbx[3 * j + i] + xqcx[3 * i + j] for k, (i, j) in enumerate(UPPER)]
-        er = _vdot(es, rr)
+        er = vdot(es, rr)
         for k, (i, j) in enumerate(UPPER):
             to_ww[k] = to_ww[k] + newton * (0.5 * (es[i] * rr[j] + es[j] * rr[i]) - (er if i == j else 0.0))
-        to_wv = _vadd(qb, _cross_left(rr, _sfull(qc)))
-        to_gw = _vadd(ga, _vcross(rr, gc))
+        to_wv = vadd(qb, cross_left(rr, sym_full(qc)))
+        to_gw = vadd(ga, vcross(rr, gc))
         up = (*to_ww, *to_wv, *qc, *to_gw, *gc, *es)
         one_hot = model.level_parent[lev][:, :, None]  # (W parent, W child, 1)
         up = _barrier(model, tuple(jnp.sum(one_hot * (valid * c)[None], axis=1) for c in up))
-        acc = _put(acc, _vadd(_slice(acc, pstart, width), up), pstart)
+        acc = _put(acc, vadd(_slice(acc, pstart, width), up), pstart)
         old = _slice(keep, start, width)
         new = tuple(jnp.where(valid > 0, n, o) for n, o in zip((*y, *z, *zz, *rr), old))
         keep = _put(keep, new, start)
@@ -589,19 +482,19 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     # Root: the 6x6 system [[A, H], [H^T, C]] (omega, v) = -(g_w, g_v), by its Schur
     # complement on v.
     root = tuple(c[0] for c in acc)
-    a_mat = list(_vadd(root[0:6], tuple(c[0] for c in p_mat)))
+    a_mat = list(vadd(root[0:6], tuple(c[0] for c in p_mat)))
     hwv, c_mat = root[6:15], list(root[15:21])
-    g_w = _vadd(root[21:24], tuple(c[0] for c in b))
+    g_w = vadd(root[21:24], tuple(c[0] for c in b))
     g_v = root[24:27]
     for k in (0, 3, 5):
         a_mat[k] = a_mat[k] + mu * jnp.abs(a_mat[k]) + 1e-12
         c_mat[k] = c_mat[k] + mu * jnp.abs(c_mat[k]) + 1e-12
     a_inv = _barrier(model, sym_inverse(a_mat))
-    ah = _barrier(model, _smul(a_inv, hwv))  # A^-1 H
+    ah = _barrier(model, sym_mul(a_inv, hwv))  # A^-1 H
     ag = sym_apply(a_inv, g_w)
-    schur = _vsub(c_mat, _mtmul_sym(hwv, ah))
-    v_root = sym_apply(sym_inverse(schur), _vsub(_mtvec(hwv, ag), g_v))
-    w_root = tuple(-c for c in _vadd(ag, _mvec(ah, v_root)))
+    schur = vsub(c_mat, mtmul_sym(hwv, ah))
+    v_root = sym_apply(sym_inverse(schur), vsub(mtvec(hwv, ag), g_v))
+    w_root = tuple(-c for c in vadd(ag, mvec(ah, v_root)))
     xv = _barrier(model, (*w_root, *v_root))
 
     # Root-to-leaf back substitution, one level per iteration.
@@ -616,8 +509,8 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
         pidx = jax.lax.dynamic_slice_in_dim(parent_pad, start, width)
         par = _rows(sol, pidx)
         wp, vp = par[0:3], par[3:6]
-        v = _vadd(vp, _vcross(wp, rr))
-        om = tuple(-c for c in _vsub(_vadd(z, _mvec(y, v)), _mvec(zz, wp)))
+        v = vadd(vp, vcross(wp, rr))
+        om = tuple(-c for c in vsub(vadd(z, mvec(y, v)), mvec(zz, wp)))
         old = _slice(sol, start, width)
         new = tuple(jnp.where(valid > 0, n, o) for n, o in zip((*om, *v), old))
         return _barrier(model, _put(sol, new, start))
@@ -627,63 +520,19 @@ def _step(model: BatchModel, ev: Evaluation, w, lam2, mu, newton):
     vel = tuple(c[:n_seg] for c in sol[3:6])
 
     # Predicted decrease of the energy by the Gauss-Newton model.
-    dp = _vadd(_vcross(tuple(c[:, None] for c in omega), u), tuple(c[:, None] for c in vel))
-    de = _mvec(d, _vsub(omega, _parent_values(model, omega, (0.0, 0.0, 0.0))))
-    lin = jnp.sum(_sum_slots(w * (2.0 * _vdot(r, dp) + _vdot(dp, dp))), axis=0)
-    lin = lin + jnp.sum(lam2 * (2.0 * _vdot(ev.e_prior, de) + _vdot(de, de)), axis=0)
+    dp = vadd(vcross(tuple(c[:, None] for c in omega), u), tuple(c[:, None] for c in vel))
+    de = mvec(d, vsub(omega, _parent_values(model, omega, (0.0, 0.0, 0.0))))
+    lin = jnp.sum(_sum_slots(w * (2.0 * vdot(r, dp) + vdot(dp, dp))), axis=0)
+    lin = lin + jnp.sum(lam2 * (2.0 * vdot(ev.e_prior, de) + vdot(de, de)), axis=0)
     return omega, vel, -lin
 
 
 # ------------------------------------------------------------------ Horn start
-def _horn_quat(mcov, q_default):
-    """Rotation maximising Horn's criterion for ``mcov[3a + b] = sum src_a dst_b``,
-    closest to ``q_default`` where the data leave it free: ``N^(2^k) q_default`` for
-    Horn's 4x4 matrix N shifted to be positive semi-definite."""
-    s = mcov
-    fro2 = sum(c * c for c in s)
-    shift = jnp.sqrt(3.0 * fro2) + _TINY
-    n00 = s[0] + s[4] + s[8] + shift
-    n01 = s[5] - s[7]
-    n02 = s[6] - s[2]
-    n03 = s[1] - s[3]
-    n11 = s[0] - s[4] - s[8] + shift
-    n12 = s[1] + s[3]
-    n13 = s[6] + s[2]
-    n22 = -s[0] + s[4] - s[8] + shift
-    n23 = s[5] + s[7]
-    n33 = -s[0] - s[4] + s[8] + shift
-    idx = ((0, 1, 2, 3), (1, 4, 5, 6), (2, 5, 7, 8), (3, 6, 8, 9))
-    upper = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
-
-    def square(_, n):
-        sq = [sum(n[idx[i][k]] * n[idx[k][j]] for k in range(4)) for i, j in upper]
-        scale = 1.0 / (sq[0] + sq[4] + sq[7] + sq[9])
-        return tuple(c * scale for c in sq)
-
-    n = (n00, n01, n02, n03, n11, n12, n13, n22, n23, n33)
-    first = 1.0 / (n00 + n11 + n22 + n33)
-    n = tuple(c * first for c in n)
-    n = jax.lax.fori_loop(0, HORN_SQUARINGS, square, n)
-    v = [sum(n[idx[i][k]] * q_default[k] for k in range(4)) for i in range(4)]
-    # q_default (nearly) orthogonal to the answer: take N's largest column instead.
-    diag = [n[idx[i][i]] for i in range(4)]
-    best = [n[idx[i][0]] for i in range(4)]
-    top = diag[0]
-    for j in range(1, 4):
-        better = diag[j] > top
-        best = [jnp.where(better, n[idx[i][j]], best[i]) for i in range(4)]
-        top = jnp.where(better, diag[j], top)
-    weak = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] + v[3] * v[3]) < 2.5e-3 * top * top
-    usable = fro2 > 1e-300
-    v = [jnp.where(usable, jnp.where(weak, bc, vc), qd) for vc, bc, qd in zip(v, best, q_default)]
-    return _qnormalize(tuple(v))
-
-
 def _compose(model: BatchModel, rel):
     """Global orientations from relative ones: ``q = q_parent rel``, settled once per level."""
 
     def settle(_, q):
-        return _qmul(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0)), rel)
+        return quat_multiply(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0)), rel)
 
     return jax.lax.fori_loop(0, model.n_levels, settle, rel)
 
@@ -699,21 +548,21 @@ def _horn_pass(model: BatchModel, x, w, q_def, joint, joint_w):
     mu_d = tuple((_sum_slots(w * c) + joint_w * j) * inv for c, j in zip(x, joint))
     src = tuple(o - m[:, None] for o, m in zip(off, mu_s))
     dst = tuple(c - m[:, None] for c, m in zip(x, mu_d))
-    js, jd = _vsub(jl, mu_s), _vsub(joint, mu_d)
-    wsrc, dst = _barrier(model, (_vscale(w, src), dst))
-    jws = _vscale(joint_w, js)
-    rdef = _qmatrix(q_def)
+    js, jd = vsub(jl, mu_s), vsub(joint, mu_d)
+    wsrc, dst = _barrier(model, (vscale(w, src), dst))
+    jws = vscale(joint_w, js)
+    rdef = unit_quat_to_matrix(q_def)
     # Pull towards the default pose: sum_k v_k (R_def v_k)^T = C R_def^T.
-    crt = _smul(model.shape_moment, tuple(rdef[3 * j + i] for i in range(3) for j in range(3)))
+    crt = sym_mul(model.shape_moment, tuple(rdef[3 * j + i] for i in range(3) for j in range(3)))
     mcov = tuple(
         _sum_slots(wsrc[a] * dst[b]) + jws[a] * jd[b] + HORN_DEFAULT_WEIGHT * crt[3 * a + b]
         for a in range(3)
         for b in range(3)
     )
     mcov = _barrier(model, mcov)
-    q = _barrier(model, _horn_quat(mcov, q_def))
-    rot = _qmatrix(q)
-    t = _vsub(mu_d, _mvec(rot, mu_s))
+    q = _barrier(model, horn_quat(mcov, q_def, HORN_SQUARINGS))
+    rot = unit_quat_to_matrix(q)
+    t = vsub(mu_d, mvec(rot, mu_s))
     return q, rot, t, wsum > 0
 
 
@@ -735,9 +584,9 @@ def _horn_start(model: BatchModel, x, w, default_relative, passes):
         q, rot, t, seen = carry
         rp = _parent_values(model, rot, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
         tp = _parent_values(model, t, (0.0, 0.0, 0.0))
-        joint = _vadd(tp, _mvec(rp, model.joint_parent))
+        joint = vadd(tp, mvec(rp, model.joint_parent))
         jw = model.has_parent * _parent_values(model, (seen.astype(w.dtype),), (0.0,))[0]
-        q_def = _qmul(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0)), default_relative)
+        q_def = quat_multiply(_parent_values(model, q, (1.0, 0.0, 0.0, 0.0)), default_relative)
         return _horn_pass(model, x, w, q_def, joint, jw)
 
     q, rot, _, _ = jax.lax.fori_loop(1, jnp.minimum(passes, model.n_levels), again, (q, rot, t, seen))
@@ -784,8 +633,8 @@ def _lm(model, x, w, lam2, t0, q0, prior, max_steps, energy_rtol, step_tol):
         t, q, ev, mu, nu, steps, done, newton_ok, it = state
         newton = newton_ok.astype(dtype)
         omega, vel, predicted = _step(model, ev, w, lam2, mu, newton)
-        t_new = _vadd(t, tuple(c[0] for c in vel))
-        q_new = _qnormalize(_qmul(_qexp(omega), q))
+        t_new = vadd(t, tuple(c[0] for c in vel))
+        q_new = quat_normalize(quat_multiply(axis_angle_to_quat(omega), q))
         ev_new = _evaluate(model, x, w, t_new, q_new, prior, lam2)
         drop = ev.energy - ev_new.energy
         ev_old_energy = ev.energy
@@ -814,7 +663,7 @@ def _lm(model, x, w, lam2, t0, q0, prior, max_steps, energy_rtol, step_tol):
 
     t, q, ev, _, _, steps, done, _, _ = jax.lax.while_loop(cond, body, state0)
     wsum = jnp.maximum(jnp.sum(_sum_slots(w), axis=0), 1.0)
-    rms = jnp.sqrt(jnp.sum(_sum_slots(w * _vdot(ev.err, ev.err)), axis=0) / wsum)
+    rms = jnp.sqrt(jnp.sum(_sum_slots(w * vdot(ev.err, ev.err)), axis=0) / wsum)
     return BatchSolution(root_position=t, rotations=q, num_steps=steps, done=done, rms=rms, evaluation=ev)
 
 
@@ -856,16 +705,16 @@ def solve_chunk(
     def from_horn(_):
         ident = tuple(jnp.full_like(q_in[0], v) for v in (1.0, 0.0, 0.0, 0.0))
         th, qh = _horn_start(model, xs, ws, ident, horn_passes)
-        rel = _qmul(_qconj(_parent_values(model, qh, (1.0, 0.0, 0.0, 0.0))), qh)
+        rel = quat_multiply(quat_conjugate(_parent_values(model, qh, (1.0, 0.0, 0.0, 0.0))), qh)
         return th, qh, rel
 
     def given(_):
-        return t_in, _qnormalize(q_in), p_in
+        return t_in, quat_normalize(q_in), p_in
 
     t_s, q_s, p_s = jax.lax.cond(horn, from_horn, given, None)
     sol = _lm(model, xs, ws, lam2, t_s, q_s, p_s, max_steps, energy_rtol, step_tol)
     ev = sol.evaluation
-    fitted = _vadd(ev.err, xs)
+    fitted = vadd(ev.err, xs)
     inverse = jnp.argsort(order)
     child_of_joint = model.joint_segment
     return dict(
