@@ -51,6 +51,7 @@ from jaxskel.skeleton._ik import (  # noqa: E402
 )
 from jaxskel.skeleton._ik_batch import batch_model, solve  # noqa: E402
 from jaxskel._math.padding import bucket_size  # noqa: E402
+from jaxskel._math.rotation import axis_angle_to_quat, quat_multiply  # noqa: E402
 from jaxskel.skeleton._rigid_fit import Skeleton  # noqa: E402
 
 
@@ -120,7 +121,7 @@ def optimistix_ik(model):
         y0 = (tf, jnp.zeros_like(qf[:, 1:]))
         sol = optx.least_squares(_residuals, solver, y0, args, max_steps=256, throw=False)
         t, delta = sol.value
-        q = jaxskel._math.geometry.quat_multiply(jaxskel._math.geometry.axis_angle_to_quat(delta), qf)
+        q = quat_multiply(axis_angle_to_quat(delta), qf)
         return t, q, sol.stats["num_steps"]
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None)))

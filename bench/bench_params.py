@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # calibr
 
 from calibration_motions import main_movements, perturbed, truth_arrays  # noqa: E402
 from jaxskel import synth  # noqa: E402
-from jaxskel._math.geometry import matrix_to_quat, quat_conjugate, quat_multiply  # noqa: E402
+from jaxskel._math.rotation import matrix_to_quat, quat_conjugate, quat_multiply  # noqa: E402
 from jaxskel.sd06._normalize import normalize_arrays, tree_arrays  # noqa: E402
 from jaxskel.sd06._parameterize import parameterize_normalized  # noqa: E402
 

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .geometry import horn_align
+from .rotation import horn_align
 
 __all__ = ["align_to_reference", "procrustes"]
 

@@ -36,7 +36,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import InputError
-from .._math.geometry import horn_align
+from .._math.rotation import horn_align
 from ..joints import JointSolution, solve_joints
 from ..skeleton import (
     DEFAULT_PRIOR_WEIGHT,

@@ -57,7 +57,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionWarning, InputError
-from .._math.geometry import quat_to_matrix
+from .._math.rotation import quat_to_matrix
 from ..io import Trial
 from ._fragments import Fragments, fragment_arrays
 

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from .._math.geometry import horn_align
+from .._math.rotation import horn_align
 
 __all__ = [
     "sampled_min_distance",

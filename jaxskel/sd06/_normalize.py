@@ -65,7 +65,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
-from .._math.geometry import (
+from .._math.padding import bucket_size
+from .._math.rotation import (
     matrix_to_quat,
     quat_conjugate,
     quat_multiply,
@@ -73,7 +74,6 @@ from .._math.geometry import (
     quat_rotate,
     quat_to_matrix,
 )
-from .._math.padding import bucket_size
 
 __all__ = [
     "DEFAULT_POSE_WEIGHTS",

@@ -52,7 +52,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConvergenceWarning, DegenerateMotionWarning, InputError
-from .._math.geometry import (
+from .._math.padding import bucket_size
+from .._math.rotation import (
     axis_angle_to_quat,
     matrix_to_quat,
     quat_conjugate,
@@ -60,8 +61,8 @@ from .._math.geometry import (
     quat_rotate,
     quat_to_axis_angle,
     quat_to_matrix,
+    quat_twist_angle,
 )
-from .._math.padding import bucket_size
 from . import _axes
 from ._normalize import (
     Normalization,
@@ -90,10 +91,6 @@ METHODS = ("joining", "pca", "em")
 def _unit(v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     n = jnp.linalg.norm(v, axis=-1, keepdims=True)
     return v / jnp.where(n > 1e-12, n, 1.0)
-
-
-def _axis_quat(axis: Float[Array, "... 3"], angle: Float[Array, "..."]) -> Float[Array, "... 4"]:
-    return axis_angle_to_quat(axis * angle[..., None])
 
 
 def _angle_about(a: Float[Array, "... 3"], u: Float[Array, "... 3"], v: Float[Array, "... 3"]) -> Float[Array, "..."]:
@@ -155,11 +152,9 @@ def swing_twist_angles(
     two = (n_axes > 1) & (jnp.linalg.norm(jnp.cross(a, b)) > 1e-6)
     alpha = jnp.where(two, _angle_about(a, rest_direction, x), _angle_about(a, rest_direction, p))
     beta = jnp.where(two, _angle_about(b, x, p), 0.0)
-    swing = quat_multiply(_axis_quat(b, beta), _axis_quat(a, alpha))
+    swing = quat_multiply(axis_angle_to_quat(b * beta[..., None]), axis_angle_to_quat(a * alpha[..., None]))
     d = quat_rotate(swing, rest_direction)
-    m = quat_multiply(q, quat_conjugate(quat_multiply(swing, rest_rotation)))
-    sign = jnp.where(m[:, 0] < 0, -1.0, 1.0)
-    tau = 2.0 * jnp.arctan2(sign * jnp.sum(m[:, 1:] * d, -1), sign * m[:, 0])
+    tau = quat_twist_angle(quat_multiply(q, quat_conjugate(quat_multiply(swing, rest_rotation))), d)
     residual = jnp.arccos(jnp.clip(jnp.sum(d * p, -1), -1.0, 1.0))
     return jnp.stack([alpha, beta, tau], -1), jnp.where(valid, residual, 0.0)
 
@@ -171,8 +166,11 @@ def _joint_rotations(
     rest_rotation: Float[Array, "J 4"],
 ) -> Float[Array, "F J 4"]:
     """``Q_j = R_B(beta) R_A(alpha) R_r(tau) Q_rest`` (quaternions) for every frame and joint."""
-    swing = quat_multiply(_axis_quat(axes[None, :, 1], angles[..., 1]), _axis_quat(axes[None, :, 0], angles[..., 0]))
-    twist = _axis_quat(rest_direction[None], angles[..., 2])
+    swing = quat_multiply(
+        axis_angle_to_quat(axes[None, :, 1] * angles[..., 1, None]),
+        axis_angle_to_quat(axes[None, :, 0] * angles[..., 0, None]),
+    )
+    twist = axis_angle_to_quat(rest_direction[None] * angles[..., 2, None])
     return quat_multiply(quat_multiply(swing, twist), rest_rotation[None])
 
 

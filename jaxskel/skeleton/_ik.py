@@ -86,9 +86,11 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConvergenceWarning, InputError
-from .._math.geometry import (
+from .._math.padding import bucket_size
+from .._math.rotation import (
     axis_angle_to_quat,
     horn_align,
+    inverse_right_jacobian,
     matrix_to_quat,
     quat_conjugate,
     quat_multiply,
@@ -96,8 +98,8 @@ from .._math.geometry import (
     quat_to_axis_angle,
     quat_to_matrix,
     skew,
+    slerp,
 )
-from .._math.padding import bucket_size
 
 if TYPE_CHECKING:
     from ..io import Trial
@@ -114,7 +116,6 @@ __all__ = [
     "ik_solve",
     "inverse_kinematics",
     "kinematic_chain",
-    "slerp",
     "solve_frame",
     "tree_levels",
 ]
@@ -306,7 +307,7 @@ def ik_model(
     )
 
 
-# ------------------------------------------------------------- rotation helpers
+# ----------------------------------------------- relative rotations along the tree
 def _identity(dtype: Any) -> Float[Array, " 4"]:
     return jnp.asarray(_IDENTITY, dtype)
 
@@ -329,27 +330,6 @@ def _compose_relative(rel: Float[Array, "S 4"], parent: Int[Array, " S"]) -> Flo
         return quat_multiply(qp, rel)
 
     return jax.lax.fori_loop(0, rel.shape[0], settle, rel)
-
-
-def _inverse_right_jacobian(e: Float[Array, "S 3"]) -> Float[Array, "S 3 3"]:
-    """``Jr^-1(e)``: ``log(exp(e) exp(d)) = e + Jr^-1(e) d + O(d^2)`` (SO(3))."""
-    theta2 = jnp.sum(e * e, axis=-1)
-    small = theta2 < 1e-8
-    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
-    coef = jnp.where(
-        small,
-        1.0 / 12.0 + theta2 / 720.0,
-        1.0 / jnp.where(small, 1.0, theta2) - (1 + jnp.cos(theta)) / (2 * theta * jnp.sin(theta)),
-    )
-    k = skew(e)
-    eye = jnp.eye(3, dtype=e.dtype)
-    return eye + 0.5 * k + coef[:, None, None] * (k @ k)
-
-
-def slerp(a: Float[Array, "... 4"], b: Float[Array, "... 4"], alpha: Float[Array, "..."]) -> Float[Array, "... 4"]:
-    """Spherical interpolation ``a exp(alpha log(a^-1 b))`` (shortest arc)."""
-    d = quat_to_axis_angle(quat_multiply(quat_conjugate(a), b))
-    return quat_multiply(a, axis_angle_to_quat(alpha[..., None] * d))
 
 
 # --------------------------------------------------------------- the fast solver
@@ -421,7 +401,7 @@ def _normal_equations(t_root, q, x, w, model, prior, prior_weight):
     g_t = jnp.sum(own_e, axis=0)
     # Prior: e_s depends on omega_s through D_s = Jr^-1(e_s) R_s^T and on omega_parent via -D_s,
     # so it adds lambda^2 D^T D to blocks (s, s) and (p, p) and subtracts it from (s, p), (p, s).
-    d = _inverse_right_jacobian(e_prior) @ jnp.swapaxes(rot, 1, 2)
+    d = inverse_right_jacobian(e_prior) @ jnp.swapaxes(rot, 1, 2)
     lam2 = prior_weight**2
     dtd = lam2[:, None, None] * jnp.einsum("sji,sjk->sik", d, d)
     to_parent = jax.nn.one_hot(chain.parent, n_seg, dtype=dtype)  # (S, S); root row is zero

@@ -70,10 +70,10 @@ from jaxtyping import Array, Float, Int
 
 from .._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from .._math.anderson import anderson_step
-from .._math.geometry import quat_to_matrix
 from .._math.linalg import spd_solve
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
+from .._math.rotation import quat_to_matrix
 from ..io import Trial
 from ._hinge_centres import MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, hinge_axes, hinge_shifts
 from ._ik import (

@@ -14,7 +14,7 @@ def rotvec_to_matrix(rotvec: Float[np.ndarray, "... 3"]) -> Float[np.ndarray, ".
         R = I + sin(a) K + (1 - cos(a)) K^2,   a = |r|,  K = [r / a]x.
 
     The generator stays on the host in float64 on purpose: it is the independent
-    reference the JAX code in :mod:`jaxskel._math.geometry` is tested against, and eager
+    reference the JAX code in :mod:`jaxskel._math.rotation` is tested against, and eager
     JAX would compile every operation anew for each trial length.
     """
     r = np.asarray(rotvec, dtype=float)

@@ -1,14 +1,31 @@
-"""Small rigid-body geometry in JAX: quaternions, rotation matrices, Horn alignment.
+"""The rotation kit: quaternions, rotation matrices, rotation vectors, rigid alignment.
 
 Conventions (used everywhere in jaxskel):
 
-* Quaternions are ``(w, x, y, z)`` with ``w`` the scalar part, unit norm, and
-  act on column vectors: ``v' = q v q*`` equals ``R(q) @ v``.
-* A pose ``(R, t)`` maps a point from a segment's local frame to the world:
-  ``x_world = R @ x_local + t``.
-* Masks, not NaNs: weights/masks select which points take part.
+* **Quaternions** are ``(w, x, y, z)``, ``w`` the scalar part, in the last axis
+  (``... 4``). A rotation is a unit quaternion; ``q`` and ``-q`` are the same rotation,
+  and functions that pick one return ``w >= 0``. The product is Hamilton's:
+  ``quat_multiply(p, q)`` applies ``q`` first, then ``p``, and
+  ``quat_to_matrix(p q) = quat_to_matrix(p) @ quat_to_matrix(q)``.
+* **Rotations are active** and act on column vectors: ``quat_rotate(q, v) = q v q* =
+  R(q) @ v`` turns the vector, in a fixed frame.
+* **Rotation vectors** (``... 3``, "axis-angle") are the axis times the angle in radians
+  (right-hand rule); :func:`axis_angle_to_quat` is the exponential map and
+  :func:`quat_to_axis_angle` its inverse on angles in ``[0, pi]``.
+* **Poses.** A pose ``(R, t)`` maps a point from a segment's local frame to the world:
+  ``x_world = R @ x_local + t``, so the columns of ``R`` are the local axes in world
+  coordinates.
+* **Masks, not NaNs**: weights select which points take part.
 
-All functions are pure, jit/vmap/grad-able, and follow the dtype of their input.
+The kit has two forms, and no other module of jaxskel computes rotations:
+
+* this module's JAX functions on arrays of structures (``... 4``, ``... 3``,
+  ``... 3 3``): pure, jit/vmap/grad-able, following the dtype of their input;
+* :mod:`jaxskel._math.rotation_planes`: the operations the batched IK needs, on
+  structures of arrays (tuples of component arrays, vectorised along the frames axis),
+  under the same names; each agrees with its namesake here to rounding, and where the
+  arithmetic is the same (the product, the conjugate) the function here is the planes
+  one on unstacked components.
 """
 
 from __future__ import annotations
@@ -16,39 +33,36 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from . import rotation_planes
+
 __all__ = [
-    "quat_multiply",
-    "quat_conjugate",
-    "quat_normalize",
-    "quat_to_matrix",
-    "matrix_to_quat",
-    "quat_rotate",
     "axis_angle_to_quat",
-    "quat_to_axis_angle",
-    "skew",
     "det3",
     "horn_align",
+    "inverse_right_jacobian",
+    "matrix_to_quat",
+    "quat_conjugate",
+    "quat_multiply",
+    "quat_normalize",
+    "quat_rotate",
+    "quat_to_axis_angle",
+    "quat_to_matrix",
+    "quat_twist_angle",
+    "skew",
+    "slerp",
 ]
 
 
+# ------------------------------------------------------------------ quaternions
 def quat_multiply(p: Float[Array, "... 4"], q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-    """Hamilton product ``p q`` (apply q first, then p)."""
-    pw, px, py, pz = jnp.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = jnp.moveaxis(q, -1, 0)
-    return jnp.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+    """Hamilton product ``p q`` (apply q first, then p); broadcasts."""
+    out = rotation_planes.quat_multiply(tuple(jnp.moveaxis(p, -1, 0)), tuple(jnp.moveaxis(q, -1, 0)))
+    return jnp.stack(out, axis=-1)
 
 
 def quat_conjugate(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
     """Conjugate (the inverse of a unit quaternion)."""
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    return jnp.stack(rotation_planes.quat_conjugate(tuple(jnp.moveaxis(q, -1, 0))), axis=-1)
 
 
 def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
@@ -94,13 +108,24 @@ def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
 
 
 def quat_rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
-    """Rotate vectors ``v`` by unit quaternions ``q`` (broadcasting)."""
+    """Rotate vectors ``v`` by unit quaternions ``q`` (broadcasting): ``R(q) @ v``."""
     w = q[..., :1]
     u = q[..., 1:]
     t = 2.0 * jnp.cross(u, v)
     return v + w * t + jnp.cross(u, t)
 
 
+def quat_twist_angle(q: Float[Array, "... 4"], axis: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Angle in ``[-pi, pi]`` of the twist of ``q`` about the unit ``axis``: the rotation
+    about ``axis`` closest to ``q``. With ``q = (w, v)`` and ``w >= 0`` (either sign is
+    taken), ``2 atan2(v . axis, w)``: for unit quaternions ``tr(A^T B) = 4 (a . b)^2 - 1``,
+    and ``a . b`` is largest over the rotations ``b`` about the axis at that angle.
+    """
+    sign = jnp.where(q[..., 0] < 0, -1.0, 1.0)
+    return 2.0 * jnp.arctan2(sign * jnp.sum(q[..., 1:] * axis, -1), sign * q[..., 0])
+
+
+# ------------------------------------------------------------ rotation vectors
 def axis_angle_to_quat(rotvec: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
     """Quaternion of a rotation vector (axis * angle in radians); smooth at 0."""
     theta2 = jnp.sum(rotvec * rotvec, axis=-1, keepdims=True)
@@ -126,13 +151,36 @@ def quat_to_axis_angle(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
     return k * u
 
 
+def slerp(a: Float[Array, "... 4"], b: Float[Array, "... 4"], alpha: Float[Array, "..."]) -> Float[Array, "... 4"]:
+    """Spherical interpolation ``a exp(alpha log(a^-1 b))`` (shortest arc; ``alpha`` 0 gives
+    ``a``, 1 gives ``b`` up to sign)."""
+    d = quat_to_axis_angle(quat_multiply(quat_conjugate(a), b))
+    return quat_multiply(a, axis_angle_to_quat(alpha[..., None] * d))
+
+
+def inverse_right_jacobian(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """``Jr^-1(e)``: ``log(exp(e) exp(d)) = e + Jr^-1(e) d + O(d^2)`` on SO(3), as
+    ``I + [e]x / 2 + c [e]x^2`` with ``c = 1/theta^2 - (1 + cos theta) / (2 theta sin theta)``
+    (``theta = |e|``; its Taylor series ``1/12 + theta^2/720`` near 0)."""
+    theta2 = jnp.sum(e * e, axis=-1)
+    small = theta2 < 1e-8
+    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
+    coef = jnp.where(
+        small,
+        1.0 / 12.0 + theta2 / 720.0,
+        1.0 / jnp.where(small, 1.0, theta2) - (1 + jnp.cos(theta)) / (2 * theta * jnp.sin(theta)),
+    )
+    k = skew(e)
+    eye = jnp.eye(3, dtype=e.dtype)
+    return eye + 0.5 * k + coef[..., None, None] * (k @ k)
+
+
+# --------------------------------------------------------------------- matrices
 def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
-    """Cross-product matrix: ``skew(a) @ b == cross(a, b)``."""
+    """Cross-product matrix ``[v]x``: ``skew(a) @ b == cross(a, b)``."""
     x, y, z = jnp.moveaxis(v, -1, 0)
     o = jnp.zeros_like(x)
-    return jnp.stack(
-        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2
-    )
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2)
 
 
 def det3(m: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
@@ -148,6 +196,7 @@ def det3(m: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
     )
 
 
+# -------------------------------------------------------------- rigid alignment
 def horn_align(
     source: Float[Array, "N 3"],
     target: Float[Array, "N 3"],
@@ -170,11 +219,9 @@ def horn_align(
     mu_t = jnp.sum(wn[:, None] * target, axis=0)
     cov = jnp.einsum("n,ni,nj->ij", wn, target - mu_t, source - mu_s)
     u, _, vt = jnp.linalg.svd(cov)
-    # det(U V^T) = det(U) det(V^T), each +-1 (measured: 8 % of a batched alignment)
+    # det(U V^T) = det(U) det(V^T), each +-1: two cofactor expansions, no third factorisation.
     d = jnp.sign(det3(u) * det3(vt))
     d = jnp.where(d == 0, 1.0, d)
     diag = jnp.array([1.0, 1.0, 0.0], dtype=source.dtype) + jnp.array([0.0, 0.0, 1.0], dtype=source.dtype) * d
     rot = (u * diag) @ vt
     return rot, mu_t - rot @ mu_s
-
-
