@@ -17,7 +17,8 @@ Conventions (used everywhere in jaxskel):
   coordinates.
 * **Masks, not NaNs**: weights select which points take part.
 
-The kit has two forms, and no other module of jaxskel computes rotations:
+The kit has three forms; the rest of jaxskel composes them rather than writing rotation
+maths of its own:
 
 * this module's JAX functions on arrays of structures (``... 4``, ``... 3``,
   ``... 3 3``): pure, jit/vmap/grad-able, following the dtype of their input;
@@ -25,17 +26,23 @@ The kit has two forms, and no other module of jaxskel computes rotations:
   structures of arrays (tuples of component arrays, vectorised along the frames axis),
   under the same names; each agrees with its namesake here to rounding, and where the
   arithmetic is the same (the product, the conjugate) the function here is the planes
-  one on unstacked components.
+  one on unstacked components;
+* host forms, named ``..._np`` (numpy, float64, eager), for code that stays on the host
+  in numpy, such as the synthetic-data generator.
 """
 
 from __future__ import annotations
 
+from types import ModuleType
+
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from . import rotation_planes
 
 __all__ = [
+    "axis_angle_to_matrix_np",
     "axis_angle_to_quat",
     "det3",
     "horn_align",
@@ -49,6 +56,7 @@ __all__ = [
     "quat_to_matrix",
     "quat_twist_angle",
     "skew",
+    "skew_np",
     "slerp",
 ]
 
@@ -176,11 +184,15 @@ def inverse_right_jacobian(e: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
 
 
 # --------------------------------------------------------------------- matrices
+def _skew(xp: ModuleType, v):
+    x, y, z = xp.moveaxis(v, -1, 0)
+    o = xp.zeros_like(x)
+    return xp.stack([xp.stack([o, -z, y], -1), xp.stack([z, o, -x], -1), xp.stack([-y, x, o], -1)], -2)
+
+
 def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
     """Cross-product matrix ``[v]x``: ``skew(a) @ b == cross(a, b)``."""
-    x, y, z = jnp.moveaxis(v, -1, 0)
-    o = jnp.zeros_like(x)
-    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], -2)
+    return _skew(jnp, v)
 
 
 def det3(m: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
@@ -225,3 +237,26 @@ def horn_align(
     diag = jnp.array([1.0, 1.0, 0.0], dtype=source.dtype) + jnp.array([0.0, 0.0, 1.0], dtype=source.dtype) * d
     rot = (u * diag) @ vt
     return rot, mu_t - rot @ mu_s
+
+
+# ------------------------------------------------------------------- host forms
+def skew_np(v: Float[np.ndarray, "... 3"]) -> Float[np.ndarray, "... 3 3"]:
+    """Host form (numpy, float64) of :func:`skew`."""
+    return _skew(np, np.asarray(v, dtype=float))
+
+
+def axis_angle_to_matrix_np(rotvec: Float[np.ndarray, "... 3"]) -> Float[np.ndarray, "... 3 3"]:
+    """Host form (numpy, float64): the rotation matrix ``exp([r]x)`` of rotation vectors r,
+    by Rodrigues' formula
+
+        R = I + sin(a) K + (1 - cos(a)) K^2,   a = |r|,  K = [r / a]x.
+
+    Equals ``quat_to_matrix(axis_angle_to_quat(r))`` to rounding. For code that stays on
+    the host (the synthetic-data generator, plots), where eager JAX would compile every
+    operation anew for each array shape.
+    """
+    r = np.asarray(rotvec, dtype=float)
+    angle = np.linalg.norm(r, axis=-1)[..., None, None]
+    unit = r / np.where(angle[..., 0] > 0, angle[..., 0], 1.0)
+    k = _skew(np, unit)
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)

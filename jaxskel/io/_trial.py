@@ -22,6 +22,7 @@ import numpy as np
 
 from .._errors import InputError
 from .._math.padding import bucket_size
+from .._math.rotation import skew_np
 from ._raw import UP_AXES
 
 __all__ = ["Trial", "UP_AXES", "rotation_between_axes"]
@@ -56,9 +57,9 @@ def rotation_between_axes(src: str, dst: str) -> np.ndarray:
         # Half turn about an axis orthogonal to a: R = 2 n n^T - I.
         n = np.eye(3)[int(np.argmin(np.abs(a)))]
         return 2.0 * np.outer(n, n) - np.eye(3)
-    # Quarter turn: Rodrigues with k = a x b, sin = 1, cos = 0.
-    k = np.cross(a, b)
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    # Quarter turn about k = a x b: Rodrigues with sin = 1 and cos = 0 exactly, so the
+    # matrix permutes coordinates exactly (cos(pi / 2) in floating point is 6e-17).
+    kx = skew_np(np.cross(a, b))
     return np.eye(3) + kx + kx @ kx
 
 

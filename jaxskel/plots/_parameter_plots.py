@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from .._errors import InputError
+from .._math.rotation import axis_angle_to_matrix_np
 
 __all__ = ["plot_joint_spheres", "plot_speed_histograms", "plot_angles"]
 
@@ -46,12 +47,6 @@ def _save(fig: Figure, path: str | os.PathLike[str] | None) -> Figure:
     if path is not None:
         fig.savefig(path, dpi=110)
     return fig
-
-
-def _rotate(axis: np.ndarray, angle: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rodrigues: ``v`` turned by each of ``angle`` about unit ``axis`` -> (n, 3)."""
-    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    return v * cos + np.cross(axis, v) * sin + np.outer(1 - cos[:, 0], axis * (axis @ v))
 
 
 def plot_joint_spheres(
@@ -87,7 +82,7 @@ def plot_joint_spheres(
             axis = param.axes[j, k]
             colour = _AXIS_COLOURS[k]
             ax.quiver(0, 0, 0, *(1.4 * axis), color=colour, lw=1.5, arrow_length_ratio=0.1)
-            ax.plot(*_rotate(axis, sweep, rest).T, color=colour, lw=1.0)
+            ax.plot(*(axis_angle_to_matrix_np(sweep[:, None] * axis) @ rest).T, color=colour, lw=1.0)
         ax.scatter(*rest, s=80, marker="*", color="black", depthshade=False)
         ax.set_title(f"{_label(j, names)}: {int(param.n_axes[j])} axis", fontsize=9)
         ax.set_box_aspect((1, 1, 1))

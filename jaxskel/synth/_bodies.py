@@ -33,7 +33,7 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from .._errors import InputError
-from ._rotation import rotvec_to_matrix
+from .._math.rotation import axis_angle_to_matrix_np
 
 __all__ = ["Body", "JOINT_DOF", "linkage", "full_body", "random_tree"]
 
@@ -455,7 +455,7 @@ def full_body(
         ax = np.asarray(ax, dtype=float)
         if kind == "hinge":
             # Tilt the hinge axis a few degrees about the segment's long axis (Z).
-            ax = ax @ rotvec_to_matrix(_Z * rng.normal(0.0, np.deg2rad(2.0))).T
+            ax = ax @ axis_angle_to_matrix_np(_Z * rng.normal(0.0, np.deg2rad(2.0))).T
         axes.append(ax)
         limits.append(np.asarray(lim, dtype=float))
         offsets.append([np.asarray(centre) * seg_scale[p], np.zeros(3)])

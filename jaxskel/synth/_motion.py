@@ -19,8 +19,8 @@ import numpy as np
 from jaxtyping import Float
 
 from .._errors import InputError
+from .._math.rotation import axis_angle_to_matrix_np
 from ._bodies import Body
-from ._rotation import rotvec_to_matrix
 
 __all__ = [
     "MOTIONS",
@@ -59,9 +59,9 @@ def relative_rotation(
 ) -> Float[np.ndarray, "F 3 3"]:
     """``R_rel(theta)`` of a joint (see :mod:`jaxskel.synth._bodies` for the convention)."""
     if kind == "ball":
-        return rotvec_to_matrix(angles @ axes)
+        return axis_angle_to_matrix_np(angles @ axes)
     # hinge: one factor; universal: parent-fixed axis first, then the child-fixed axis.
-    factors = rotvec_to_matrix(angles[:, :, None] * axes[None])  # (F, k, 3, 3)
+    factors = axis_angle_to_matrix_np(angles[:, :, None] * axes[None])  # (F, k, 3, 3)
     out = factors[:, 0]
     for k in range(1, factors.shape[1]):
         out = out @ factors[:, k]
@@ -139,7 +139,7 @@ def calibration_motion(
     else:
         rotvec = wander[:, :3] * 1.2
         translation = wander[:, 3:] * 0.25
-    return tuple(angles), (rotvec_to_matrix(rotvec), translation + body.rest_translation)
+    return tuple(angles), (axis_angle_to_matrix_np(rotvec), translation + body.rest_translation)
 
 
 # Walking pattern per joint name (without side prefix): per degree of freedom,
@@ -203,8 +203,8 @@ def walk_motion(
     )
     # Face along the circle's tangent: yaw = heading + 90 degrees, then the pelvis
     # oscillations (roll, pitch, yaw) in the pelvis frame.
-    yaw = rotvec_to_matrix(np.stack([0 * heading, 0 * heading, heading + 0.5 * np.pi], axis=1))
-    rotation = yaw @ rotvec_to_matrix(gait)
+    yaw = axis_angle_to_matrix_np(np.stack([0 * heading, 0 * heading, heading + 0.5 * np.pi], axis=1))
+    rotation = yaw @ axis_angle_to_matrix_np(gait)
     translation = np.stack(
         [radius * np.cos(heading), radius * np.sin(heading), 0.0 * heading], axis=1
     )
