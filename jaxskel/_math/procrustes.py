@@ -11,10 +11,8 @@ from .rotation import horn_align
 __all__ = ["align_to_reference", "procrustes"]
 
 #: Generalised Procrustes stops when no point of the mean cloud moves more than this
-#: (metres) in a pass, or after ``_GPA_MAX_PASSES``. Measured (full body, 2 mm noise, 3 mm
-#: soft tissue): the largest move shrinks ~20x per pass, 5-8 mm, 0.1-0.15 mm, 4-8 um,
-#: 0.2-0.4 um, 0.01-0.02 um: 5 passes instead of a fixed 8, and the cloud is 10^4 times
-#: finer than the marker noise.
+#: (metres) in a pass, or after ``_GPA_MAX_PASSES``: the mean converges linearly, and a
+#: tenth of a micrometre is far below any marker noise.
 _GPA_TOL, _GPA_MAX_PASSES = 1e-7, 8
 
 
@@ -40,9 +38,8 @@ def procrustes(
     Iterates: align every frame's cloud to the reference (Horn, weights = presence x
     reference presence), reference <- weighted mean of the aligned clouds, until no
     reference point moves by more than ``_GPA_TOL`` (at most ``_GPA_MAX_PASSES``
-    passes; the reference moves ~20x less each pass). Returns the
-    mean cloud, each frame's alignment ``(R, t)`` (``R x + t`` maps the frame to the
-    mean) and each point's RMS scatter about the mean.
+    passes). Returns the mean cloud, each frame's alignment ``(R, t)`` (``R x + t`` maps
+    the frame to the mean) and each point's RMS scatter about the mean.
     """
     def aligned(ref, ref_w):
         rot, t = align_to_reference(points, weights, ref, ref_w)

@@ -32,11 +32,8 @@ A fragment is *explained* when ``sqrt(v_k*)`` is below ``rigid_tolerance``.
 Between two explained fragments the link cost becomes ``min(D_ij, S_ij)``: the
 skeleton can vouch for a link the marker-only distance D found doubtful (two
 fragments far apart in time, seen in poses that never repeat), but never break
-one D found sure. On real data (PronetoRun01 relabelled after every gap) the
-skeleton alone undid good merges where the subject leaves the capture volume
-and the poses are extrapolated; with the minimum, one of the four wrong links
-is fixed and three of the five wrongly dropped fragments rejoin their marker
-(labels right: 92.7 % -> 96.8 %). The exact chain assignment of
+one D found sure: where the subject leaves the capture volume the poses are
+extrapolated, and the skeleton alone would undo good merges. The exact chain assignment of
 :func:`jaxskel.relabel.merge_labels` is then solved again (same drop cost for short
 ghosts, same marker-count rule). Links it keeps are *confirmed*; new ones are
 *corrections*; every decision again gets the regret confidence ``r / (r + c)``.
@@ -151,8 +148,7 @@ def confirm_merges(
         own markers are seen (default 0: every frame, the inverse-kinematics
         gap filling included). Raising it keeps fragments seen only while their
         segment is extrapolated (e.g. the subject leaving the capture volume)
-        to the marker-only distance; on real data that lost more good
-        corrections than it saved.
+        to the marker-only distance.
     min_explained
         The skeleton is trusted only if it explains at least this fraction of
         the marker samples (seen where their segment is posed). A skeleton fitted to a recording that could not
@@ -233,7 +229,7 @@ def confirm_merges(
     judged = explained[:, None] & explained[None, :]
     # The skeleton may vouch for a link the markers alone found doubtful, never break one they
     # found sure: where its poses are extrapolated (or posed on first-pass mistakes) its
-    # prediction is worse than the local marker alignment (measured on real data).
+    # prediction is worse than the local marker alignment.
     cost = np.where(judged, np.minimum(skeleton_cost, np.asarray(mapping.distance)), np.asarray(mapping.distance))
     cooccur = frags.cooccur()
     cost[cooccur] = np.inf

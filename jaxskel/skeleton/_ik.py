@@ -50,9 +50,7 @@ Solvers. Orientations are updated by rotation-vector increments,
   energy and unknowns, frames on the last axis of structure-of-arrays tensors, an O(S)
   leaf-to-root elimination per step instead of dense normal equations, Newton steps near
   the optimum, and no LAPACK kernels, so chunks of frames run on several host threads.
-  Measured on the full body (46 markers, 2-core CPU, ``bench/bench_ik.py``): ~24,000
-  frames/s for the public call against ~1,900 for the vmapped :func:`solve_frame` and
-  single digits for scipy ``least_squares`` per frame, all agreeing to 0.01 um.
+  ``bench/bench_ik.py`` compares the solvers' speed and agreement.
 * :func:`ik_solve` polishes that solution with ``optimistix.LevenbergMarquardt`` on the
   residual form, so that gradients of the solution with respect to the markers and the
   skeleton constants come from implicit differentiation (``optimistix.ImplicitAdjoint``).
@@ -825,8 +823,8 @@ def _check_bounds(bounds: Sequence[tuple[int, int]], n_frames: int) -> tuple[tup
     return out
 
 
-# Compiled once per shape: run eagerly, the vmapped quaternion algebra dispatched op by op
-# (25 ms a call on 1000 frames; the rigid refinement calls it once per sweep).
+# Compiled once per shape: run eagerly, the vmapped quaternion algebra would be dispatched
+# op by op, and the rigid refinement calls it once per sweep.
 _relative_batch = jax.jit(jax.vmap(_relative_rotations, (0, None)))
 
 
@@ -910,9 +908,8 @@ def inverse_kinematics(
         Marker slots per segment in the solver's layout (default: as many as the fullest
         segment has). :func:`jaxskel.fit_skeleton` passes those of the rigid refinement
         (:func:`jaxskel.skeleton._ik_batch.solver_shape`, one more than the fullest non-root
-        segment has markers), so that both run one compiled solver: that saves a ~6 s
-        compilation in a new process and costs the IK ~20 % per frame (7,200 frames of
-        the synthetic body: 0.38-0.41 s against 0.46-0.51 s).
+        segment has markers), so that both run one compiled solver: one compilation
+        less in a new process, for an idle slot per segment in the IK.
 
     Returns
     -------
@@ -1002,8 +999,7 @@ def inverse_kinematics(
             # Two starts for the same energy (markers + the interpolated prior): the
             # interpolation, and the pose already found. Across a long gap in fast motion
             # the interpolation can start in a wrong basin the markers would have ruled
-            # out (a 4 s take, 3 joints: 88 mm off at 3-33 mm marker RMS where the pose
-            # found fits to 1 mm), so each frame keeps the lower energy.
+            # out, so each frame keeps the lower energy.
             prior_rows = prior2.reshape(n, n_seg, 4)[rows]
             again = solve(
                 model, xf[rows], mf[rows], sol["root_position"][rows],

@@ -23,7 +23,7 @@ is organised for a CPU:
   :func:`jaxskel.skeleton._ik._normal_equations`, in O(S) work. The pose prior couples a
   segment's turn with its parent's only, so it stays inside the elimination.
 * **Newton, not only Gauss-Newton.** With markers a few millimetres off the model,
-  Gauss-Newton converges linearly (error x ~0.15 per step on the full body). The exact
+  Gauss-Newton converges only linearly (the residuals' curvature is left out). The exact
   Hessian adds, for every segment ``a``, the residual curvature of its turn
   ``sum w [sym(r l^T) - (r . l) I]`` over the markers below ``a`` (``r`` residual, ``l``
   the lever on ``a``: a segment's rotation enters every marker position through one
@@ -293,9 +293,9 @@ def solver_shape(marker_segment: np.ndarray, edges: np.ndarray, n_markers: int) 
     non-root segment needs one slot more than it has markers and the input one column
     per joint more. :func:`jaxskel.skeleton.inverse_kinematics` pads its columns the same way (free)
     and, given ``slots`` (as :func:`jaxskel.fit_skeleton` does), reserves that slot too,
-    so both run *one* compiled :func:`solve_chunk`: compiling it takes ~6 s on two CPU
-    cores, the idle slot costs the IK ~20 % per frame. Returns the slot count per
-    segment and the padded width of the marker axis for ``n_markers`` markers.
+    so both run *one* compiled :func:`solve_chunk` (one compilation instead of two, for
+    an idle slot per segment in the IK). Returns the slot count per segment and the
+    padded width of the marker axis for ``n_markers`` markers.
     """
     seg = np.asarray(marker_segment, dtype=np.int64)
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)

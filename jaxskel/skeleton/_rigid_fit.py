@@ -23,9 +23,8 @@ skeleton, in two steps.
    in (:mod:`jaxskel.skeleton._ik`). ``z`` are the input joint centres with weight ``w_J``
    (``joint_weight``): they pin what the markers leave free (the centre of a hinge along
    its axis). Which weight is right depends on where the centres come from. Exact centres
-   (plus 2 mm noise) keep soft-tissue motion, which is correlated with the joint angles,
-   from dragging the joints: with 3 mm soft tissue ``w_J = 0.1`` let bone lengths drift by
-   up to 2.2 %, ``w_J = 1`` (``fit_rigid``'s default) kept them within 0.4 %. Centres
+   keep soft-tissue motion, which is correlated with the joint angles, from dragging the
+   joints, so ``fit_rigid``'s default trusts them like a marker (``w_J = 1``). Centres
    solved from the same soft-tissue markers carry that bias themselves, larger on small
    segments; :func:`jaxskel.fit_skeleton` therefore uses ``w_J = 0.1`` and places hinges
    along their axes itself (``SOLVED_JOINT_WEIGHT``, ``sliding_joints``).
@@ -102,10 +101,8 @@ JOINT_WEIGHT = 1.0
 #: the joint sliding 3 mm moves the sphere centre by centimetres on a small segment), while
 #: the articulated fit of all markers averages it out; the centres are then needed only
 #: where markers say nothing (a hinge along its axis, placed by :mod:`jaxskel.skeleton._hinge_centres`
-#: before and after the refinement). Measured, synthetic body with 3 mm soft tissue, seeds
-#: 0-2, mean joint RMSE / mean bone error: weight 1: 12.3 / 9.0 / 10.6 mm, 2.1 / 1.6 /
-#: 2.6 %; 0.1: 5.4 / 4.5 / 5.8 mm, 1.0 / 0.9 / 1.4 % (ankles 26-52 -> 6-18 mm); 0.03 about
-#: the same, 0.01 lets hinges drift along their axes again.
+#: before and after the refinement). A much smaller weight lets hinges drift along their
+#: axes again.
 SOLVED_JOINT_WEIGHT = 0.1
 
 
@@ -429,8 +426,8 @@ def _offset_system(
     """
     n_frames = rot.shape[0]
     # R_s^T R_t as a broadcast product (a fused elementwise loop) and the frame sum as one
-    # matrix product: written as two einsums, XLA:CPU ran the first as 1000 tiny batched
-    # matmuls and fused it into the second (F = 1000, S = 15, N = 60: 45 -> 19 ms).
+    # matrix product: written as two einsums, XLA:CPU would run the first as a tiny matrix
+    # product per frame and fuse it into the second.
     rtr = jnp.sum(rot[:, :, None, :, :, None] * rot[:, None, :, :, None, :], axis=3)
     pair_sums = (obs_weight.T @ rtr.reshape(n_frames, -1)).reshape((-1,) + rtr.shape[1:])
     block = pair_sums[:, unknown_segment][:, :, unknown_segment]  # (N, U, U, 3, 3)
@@ -450,8 +447,8 @@ def _offset_update(rotations, root_position, obs, weight, coef, unknown_segment,
     # constrains (a joint with nothing below it ever seen) where they are.
     ridge = 1e-10 * jnp.trace(normal) / normal.shape[0]
     eye = jnp.eye(normal.shape[0], dtype=obs.dtype)
-    # SPD (normal matrix plus a ridge): Cholesky in plain XLA (jaxskel._math.linalg), 0.7 ms for
-    # 180 unknowns, where LAPACK's LU took 18 ms inside this jit on 2 cores
+    # SPD (normal matrix plus a ridge): Cholesky in plain XLA (jaxskel._math.linalg), not
+    # LAPACK's LU.
     theta = spd_solve(normal + ridge * eye, rhs + ridge * theta_old)
     cost = (const - 2 * theta @ rhs + theta @ normal @ theta) / jnp.maximum(jnp.sum(weight), 1.0)
     return theta, cost
@@ -488,15 +485,9 @@ def _refine(
     offsets.
 
     Alternating the two converges linearly and slowly along directions that couple
-    poses and offsets (a bone's length against the poses of its two segments). On the
-    bundled sample the over-relaxed iteration used before (below) was still 4 mm from
-    the optimum after 100 sweeps and needed ~400 to settle. The updates are therefore
-    Anderson-accelerated (:mod:`jaxskel._math.anderson`, the last ``_ANDERSON_MEMORY`` + 1
-    pairs), restarted whenever the cost rose. Measured against the over-relaxation used before
-    (``theta + omega (theta* - theta)``, ``omega`` growing to 5, stopped at a relative
-    cost decrease of 1e-5): bundled sample 100 sweeps and bones up to 4.2 mm from the
-    optimum -> 91 sweeps and 0.05 mm; synthetic full body with 3 mm soft tissue 21-23 ->
-    22-23 sweeps, mean bone error 0.74 -> 0.69 % (seeds 0-2). Returns the offsets, the
+    poses and offsets (a bone's length against the poses of its two segments). The updates
+    are therefore Anderson-accelerated (:mod:`jaxskel._math.anderson`, the last
+    ``_ANDERSON_MEMORY`` + 1 pairs), restarted whenever the cost rose. Returns the offsets, the
     last sweep's solution, the cost history (mean weighted squared residual after each
     update), the largest offset move of each update (m) and whether ``xtol`` was met.
     """
@@ -603,9 +594,8 @@ def fit_rigid(
         Levenberg-Marquardt iterations per frame and sweep.
     max_sweeps, xtol
         Refinement stops after ``max_sweeps`` or when an offset update moves no offset by
-        more than ``xtol`` metres without raising the cost (default 1 um: bones settle to
-        ~0.05 mm; at 10 um they were still up to 2 mm from the optimum on the bundled
-        sample, the alternation being slow along bone lengths).
+        more than ``xtol`` metres without raising the cost (default 1 um: the alternation
+        is slow along bone lengths, so a small update may still be far from the optimum).
     max_frames
         At most this many frames (evenly spaced) are used.
     prior_weight
