@@ -82,7 +82,7 @@ def test_jacobi_eigenvectors_match_numpy():
         np.testing.assert_allclose(v @ np.diag(w) @ v.T, a, atol=1e-10)
 
 
-# ------------------------------------------------------------------ jaxskel._math.geometry
+# ------------------------------------------------------------------ jaxskel._math.rotation
 # Moved from tests/test_rigid_ik.py (now tests/skeleton/, whose tests take their references
 # from scipy in tests/helpers.py): a unit test of the rotation kit, for tests/_math/. Its
 # import is the test's own, so that a kit renamed under it fails this test alone.
@@ -90,7 +90,7 @@ def test_horn_alignment_is_a_proper_rotation_even_for_mirrored_clouds():
     """Kabsch's sign correction (det3 of U and V^T) on clouds of 3-6 points: the exact pose
     is recovered, and a mirrored cloud, which the unconstrained SVD solution would fit
     by a reflection (det -1), still gets a rotation. det3 agrees with numpy's LU det."""
-    from jaxskel._math.geometry import det3, horn_align
+    from jaxskel._math.rotation import det3, horn_align
 
     rng = np.random.default_rng(3)
     m = rng.normal(size=(200, 3, 3))
