@@ -74,7 +74,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import equinox as eqx
 import jax
@@ -101,7 +101,19 @@ from .._math.rotation import (
 
 if TYPE_CHECKING:
     from ..io import Trial
-    from ._rigid_fit import Skeleton
+
+
+class SkeletonLike(Protocol):
+    """What inverse kinematics reads of a fitted :class:`jaxskel.skeleton.Skeleton`."""
+
+    n_segments: int
+    n_markers: int
+    edges: np.ndarray
+    parent: np.ndarray
+    marker_labels: tuple[str, ...]
+    marker_segment: np.ndarray
+    marker_offsets: np.ndarray
+    joint_offsets: np.ndarray
 
 __all__ = [
     "Chain",
@@ -773,7 +785,7 @@ def _interpolated_start(
 
 
 def _ik_input(
-    skeleton: Skeleton, data: Trial | tuple[np.ndarray, np.ndarray] | np.ndarray
+    skeleton: SkeletonLike, data: Trial | tuple[np.ndarray, np.ndarray] | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float | None]:
     """(x (..., F, M, 3) zero-filled, mask (..., F, M), rate) in the skeleton's marker order."""
     from ..io import Trial
@@ -861,7 +873,7 @@ def _interpolated(
 
 
 def inverse_kinematics(
-    skeleton: Skeleton,
+    skeleton: SkeletonLike,
     data: Trial | tuple[np.ndarray, np.ndarray] | np.ndarray,
     *,
     init: Motion | None = None,
