@@ -68,10 +68,10 @@ def run_batch(spec: dict) -> dict:
         with warnings.catch_warnings(), PeakRSS() as mem:
             warnings.simplefilter("ignore")
             start = time.perf_counter()
-            js.inverse_kinematics(sk, (xb, mb))
+            js.skeleton.inverse_kinematics(sk, (xb, mb))
             cold = time.perf_counter() - start
             start = time.perf_counter()
-            js.inverse_kinematics(sk, (xb, mb))
+            js.skeleton.inverse_kinematics(sk, (xb, mb))
             warm = time.perf_counter() - start
         row = {
             "batch": b, "frames_total": b * n_frames, "jaxskel_cold_s": cold, "jaxskel_warm_s": warm,

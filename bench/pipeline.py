@@ -63,25 +63,25 @@ def _jaxskel_stages(trial, upto: str) -> tuple[dict, dict, dict]:
         wall[name], cpu[name] = _since(start)
         return value
 
-    cleaned, _ = timed("clean", lambda: js.clean(trial))
+    cleaned, _ = timed("clean", lambda: js.clean.clean(trial))
     out["trial"] = cleaned
-    out["segmentation"] = seg = timed("segment", lambda: js.segment_markers(cleaned, None, seed=0))
+    out["segmentation"] = seg = timed("segment", lambda: js.segment.segment_markers(cleaned, None, seed=0))
     if stop >= 2:
         out["pairs"] = pairs = timed(
-            "joint_costs", lambda: js.joint_costs(cleaned, seg, alpha=ALPHA, max_frames=TOPOLOGY_FRAMES)
+            "joint_costs", lambda: js.joints.joint_costs(cleaned, seg, alpha=ALPHA, max_frames=TOPOLOGY_FRAMES)
         )
     if stop >= 3:
-        out["topology"] = topo = timed("tree_joints", lambda: js.fit_topology(cleaned, seg, pairs, alpha=ALPHA))
+        out["topology"] = topo = timed("tree_joints", lambda: js.joints.fit_topology(cleaned, seg, pairs, alpha=ALPHA))
     if stop >= 4:
         out["skeleton"] = sk = timed(
             "rigid",
-            lambda: js.fit_rigid(  # as fit_skeleton calls it
+            lambda: js.skeleton.fit_rigid(  # as fit_skeleton calls it
                 cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root,
                 sliding_joints=topo.undetermined > 0, joint_weight=SOLVED_JOINT_WEIGHT,
             ),
         )
     if stop >= 5:
-        out["motion"] = timed("ik", lambda: js.inverse_kinematics(sk, cleaned))
+        out["motion"] = timed("ik", lambda: js.skeleton.inverse_kinematics(sk, cleaned))
     return out, wall, cpu
 
 

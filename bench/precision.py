@@ -51,15 +51,15 @@ def _chain(trial):
             times[name] = time.perf_counter() - start
             return value
 
-        cleaned, _ = timed("clean", lambda: js.clean(trial))
-        seg = timed("segment", lambda: js.segment_markers(cleaned, None, seed=0))
-        pairs = timed("joint_costs", lambda: js.joint_costs(cleaned, seg, alpha=ALPHA, max_frames=TOPOLOGY_FRAMES))
-        topo = timed("tree_joints", lambda: js.fit_topology(cleaned, seg, pairs, alpha=ALPHA))
-        sk = timed("rigid", lambda: js.fit_rigid(
+        cleaned, _ = timed("clean", lambda: js.clean.clean(trial))
+        seg = timed("segment", lambda: js.segment.segment_markers(cleaned, None, seed=0))
+        pairs = timed("joint_costs", lambda: js.joints.joint_costs(cleaned, seg, alpha=ALPHA, max_frames=TOPOLOGY_FRAMES))
+        topo = timed("tree_joints", lambda: js.joints.fit_topology(cleaned, seg, pairs, alpha=ALPHA))
+        sk = timed("rigid", lambda: js.skeleton.fit_rigid(
             cleaned, seg.marker_segment, topo.edges, topo.joint_positions, root=topo.root,
             sliding_joints=topo.undetermined > 0, joint_weight=SOLVED_JOINT_WEIGHT,
         ))
-        motion = timed("ik", lambda: js.inverse_kinematics(sk, cleaned))
+        motion = timed("ik", lambda: js.skeleton.inverse_kinematics(sk, cleaned))
         out = {"trial": cleaned, "segmentation": seg, "pairs": pairs, "topology": topo, "skeleton": sk, "motion": motion}
     return out, times
 
@@ -94,6 +94,7 @@ def kernel_precision(out: dict) -> dict:
     from jaxskel.skeleton._ik import DEFAULT_PRIOR_WEIGHT
     from jaxskel.skeleton._ik_batch import batch_model, solve
     from jaxskel.joints._topology import PAIR_CHUNK, pair_arrays
+    from jaxskel._math.padding import bucket_size
 
     trial, seg, topo, sk = out["trial"], out["segmentation"], out["topology"], out["skeleton"]
     x, mask = trial.to_arrays()
@@ -103,15 +104,15 @@ def kernel_precision(out: dict) -> dict:
                       if sizes[a] + sizes[b] >= 4][:PAIR_CHUNK])
     stride = max(1, int(np.ceil(trial.n_frames / TOPOLOGY_FRAMES)))
     frames = np.arange(0, trial.n_frames, stride)
-    k_pad = js.bucket_size(int(max(sizes[a] + sizes[b] for a, b in pairs)), minimum=4, steps_per_octave=1)
-    xs, mks = pair_arrays(x, mask, ms, pairs, frames, k_pad, js.bucket_size(len(frames)))
+    k_pad = bucket_size(int(max(sizes[a] + sizes[b] for a, b in pairs)), minimum=4, steps_per_octave=1)
+    xs, mks = pair_arrays(x, mask, ms, pairs, frames, k_pad, bucket_size(len(frames)))
     edges = np.sort(np.asarray(topo.edges), axis=1)
-    k_tree = js.bucket_size(int(max(sizes[a] + sizes[b] for a, b in edges)), minimum=4, steps_per_octave=1)
-    xt, mt = pair_arrays(x, mask, ms, edges, np.arange(trial.n_frames), k_tree, js.bucket_size(trial.n_frames))
+    k_tree = bucket_size(int(max(sizes[a] + sizes[b] for a, b in edges)), minimum=4, steps_per_octave=1)
+    xt, mt = pair_arrays(x, mask, ms, edges, np.arange(trial.n_frames), k_tree, bucket_size(trial.n_frames))
     labels = list(sk.marker_labels)
     xi, mi = trial.select_markers(labels).to_arrays()
-    m_pad = js.bucket_size(len(labels), minimum=8)
-    f_pad = js.bucket_size(trial.n_frames)
+    m_pad = bucket_size(len(labels), minimum=8)
+    f_pad = bucket_size(trial.n_frames)
     xip = np.zeros((f_pad, m_pad, 3))
     mip = np.zeros((f_pad, m_pad), bool)
     xip[: trial.n_frames, : len(labels)], mip[: trial.n_frames, : len(labels)] = xi, mi
@@ -119,8 +120,8 @@ def kernel_precision(out: dict) -> dict:
     results: dict = {}
     for dtype in (np.float64, np.float32):
         name = np.dtype(dtype).name
-        pair_sol, pair_s = _best_of(lambda: js.solve_joints(xs.astype(dtype), mks, alpha=ALPHA, max_steps=100))
-        tree_sol, tree_s = _best_of(lambda: js.solve_joints(xt.astype(dtype), mt, alpha=ALPHA, max_steps=200))
+        pair_sol, pair_s = _best_of(lambda: js.joints.solve_joints(xs.astype(dtype), mks, alpha=ALPHA, max_steps=100))
+        tree_sol, tree_s = _best_of(lambda: js.joints.solve_joints(xt.astype(dtype), mt, alpha=ALPHA, max_steps=200))
         model = batch_model(sk.edges, sk.joint_offsets, sk.marker_offsets, sk.marker_segment, dtype=dtype)
         prior_weight = np.full((sk.n_segments,), DEFAULT_PRIOR_WEIGHT, dtype)
         ik_out, ik_s = _best_of(lambda: solve(model, xip.astype(dtype), mip, None, None, None, prior_weight,

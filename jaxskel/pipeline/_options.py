@@ -274,7 +274,7 @@ class MotionOptions(_Group):
     enabled: bool = setting(True, BOOL, "run inverse kinematics (which fills gaps)", flat="ik", flag="--no-ik",
                             advanced=False)
     lowpass: float | str | None = setting(
-        "auto", AnyOf((None, Choice(("auto",)), _POS), what="'auto', None or a frequency in Hz (> 0)"),
+        "auto", AnyOf((None, Choice(("auto",)), _POS), what="a low-pass cutoff: 'auto', None or a frequency in Hz (> 0)"),
         "low-pass filter of the markers IK poses: 'auto' (per marker, residual analysis), a cutoff in Hz, or None",
         flat="ik_lowpass", advanced=False)
 
