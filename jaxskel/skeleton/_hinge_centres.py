@@ -5,9 +5,9 @@ elbow, a weakly exercised wrist) keeps every marker-to-joint distance constant f
 point on that axis, so the markers do not say where along the axis the centre is
 (:mod:`jaxskel.joints._cost` reports it as ``undetermined``). Kirk et al. (2005, §3.2)
 let the distance prior decide: it pulls the centre towards the markers, i.e. onto the
-skin where the markers are (measured on the synthetic body with plug-in-gait-like
-lateral knee and elbow markers: 4-6 cm lateral of the true centre, which makes the
-long bones 1-3 % too long and biases every joint angle that uses them).
+skin where the markers are, lateral of the true centre for lateral knee and elbow
+markers, which makes the long bones too long and biases every joint angle that uses them
+(measured: docs/bench/evidence_from_docstrings.md).
 
 This module places such a centre instead in the plane of the joints next to it: the
 point on the axis where the axis crosses the plane, perpendicular to it, through the
@@ -44,10 +44,10 @@ __all__ = ["MAX_BONE_COSINE", "MAX_OFF_AXIS", "MAX_OFF_AXIS_REFINED", "MIN_ROTAT
 
 #: A joint slides only if it turns as a hinge: the share of its rotation about the other
 #: axes (:func:`hinge_axes`) below 0.12, i.e. RMS angle about them under ~35 % of the
-#: total. Measured on synthetic bodies (3 mm soft tissue, seeds 0-2): knees and elbows
-#: 0.011-0.104, the two-axis wrists and ankles 0.14-0.51. A universal joint turned about
-#: both axes is pinned by its markers in every direction; moving it along a compromise
-#: axis made it worse (12 -> 31 mm), so only hinge-like motion is moved.
+#: total: it separates knees and elbows from two-axis wrists and ankles (measured:
+#: docs/bench/evidence_from_docstrings.md). A universal joint turned about both axes is
+#: pinned by its markers in every direction, and moving it along a compromise axis makes it
+#: worse, so only hinge-like motion is moved.
 MAX_OFF_AXIS = 0.12
 
 #: A moved joint is moved back (the skeleton fitted again without its slide) only if the
@@ -55,18 +55,16 @@ MAX_OFF_AXIS = 0.12
 #: rotation about the other axes at least twice :data:`MAX_OFF_AXIS`. The axis that moved it
 #: came from the frames Procrustes poses (every marker of both segments seen); under heavy
 #: occlusion those are a few short windows, in each of which any joint turns about nearly
-#: one axis. Measured: a synthetic body with 42 % of its samples seen, an ankle and two
-#: knees slid 26-147 mm, 0.49-0.62 on the refined poses (undone: the ankle's IK error
-#: 104 -> 10 mm); the 26 joints moved in 13 of 23 real recordings, 0.003-0.190, kept. The
-#: margin matters: HDM05 dg's left knee (0.190, slid 235 mm) undone would make its
-#: shank 61 mm too long instead of 7.
+#: one axis. The factor of two keeps the true hinges of real recordings, which stay well
+#: under it, and undoes the slides that heavy occlusion causes, which land well over it
+#: (measured: docs/bench/evidence_from_docstrings.md).
 MAX_OFF_AXIS_REFINED = 2.0 * MAX_OFF_AXIS
 
 #: A joint slides only if its axis crosses its bones: the cosine between the axis and the
 #: line to every neighbouring joint below 0.5 (axis at least 60 degrees from each bone).
-#: An axis along a bone is a twist (measured on HDM05 dg: an "elbow" turning about the
-#: forearm's long axis, whose limb-plane target put the centre 23 cm up the arm); there
-#: the bone line, not the plane, fixes the centre, and the prior's placement is kept.
+#: An axis along a bone is a twist (an "elbow" turning about the forearm's long axis,
+#: whose limb-plane target would put the centre far up the arm); there the bone line, not
+#: the plane, fixes the centre, and the prior's placement is kept.
 MAX_BONE_COSINE = 0.5
 
 #: A joint must turn by at least 5 degrees RMS (about its main axis) for its axis to be
