@@ -216,33 +216,6 @@ def test_programs_are_dropped_near_the_mapping_limit_and_the_batch_is_unchanged(
                                rtol=1e-9)
 
 
-def test_every_jax_stage_of_a_batch_runs_under_the_device_lock(monkeypatch, tmp_path):
-    """The batch deadlock (issue 49): the pose check's segment poses ran in the main thread
-    outside the device lock while a finishing thread ran the anchored refit's, and two
-    XLA:CPU executions at once hang for good. Every call of the segment poses, from any
-    of the batch's threads, must hold the lock (checked, not timed: a hang is a race)."""
-    from jaxskel.joints import _anchored_centres
-    from jaxskel.pipeline import _local
-
-    calls: list[tuple[str, bool]] = []  # the pose check imports the function from here when called
-    real = _anchored_centres._segment_poses
-
-    def guarded(*args, **kwargs):
-        calls.append((__import__("threading").current_thread().name, _local.DEVICE_LOCK._is_owned()))
-        return real(*args, **kwargs)
-
-    # Kept: an instrument (it records whether the lock is held and calls through), the only
-    # way to check a race by ownership instead of by timing.
-    monkeypatch.setattr(_anchored_centres, "_segment_poses", guarded)
-    body = synth.full_body()
-    trials = [synth.simulate(body, duration=4.0, seed=70 + i, noise=0.001)[0] for i in range(4)]
-    result = jaxskel.fit_batch(trials, tmp_path, batch_size=2, jobs=2, n_segments=len(body.segment_names))
-    assert [o.status for o in result] == ["ok"] * 4
-    threads = {name.split("_")[0] for name, _ in calls}
-    assert "MainThread" in threads and any(t.startswith("jaxskel-finish") for t in threads), threads
-    assert all(owned for _, owned in calls), [c for c in calls if not c[1]]
-
-
 def test_a_batch_that_overlaps_preparing_solving_and_finishing_finishes(tmp_path):
     """End to end in a fresh process, with a timeout that turns a hang into a failure:
     six full bodies in batches of two, two threads per pool, so that preparing trial k+2,
