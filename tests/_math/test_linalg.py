@@ -3,8 +3,6 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
-from helpers import random_rotation
 
 import jaxskel  # noqa: F401  (x64)
 from jaxskel._math.linalg import cholesky, spd_solve
@@ -81,27 +79,3 @@ def test_jacobi_eigenvectors_match_numpy():
         np.testing.assert_allclose(v.T @ v, np.eye(n), atol=1e-10)
         np.testing.assert_allclose(v @ np.diag(w) @ v.T, a, atol=1e-10)
 
-
-# ------------------------------------------------------------------ jaxskel._math.rotation
-# Moved from tests/test_rigid_ik.py (now tests/skeleton/, whose tests take their references
-# from scipy in tests/helpers.py): a unit test of the rotation kit, for tests/_math/. Its
-# import is the test's own, so that a kit renamed under it fails this test alone.
-def test_horn_alignment_is_a_proper_rotation_even_for_mirrored_clouds():
-    """Kabsch's sign correction (det3 of U and V^T) on clouds of 3-6 points: the exact pose
-    is recovered, and a mirrored cloud, which the unconstrained SVD solution would fit
-    by a reflection (det -1), still gets a rotation. det3 agrees with numpy's LU det."""
-    from jaxskel._math.rotation import det3, horn_align
-
-    rng = np.random.default_rng(3)
-    m = rng.normal(size=(200, 3, 3))
-    np.testing.assert_allclose(np.asarray(det3(jnp.asarray(m))), np.linalg.det(m), rtol=1e-10, atol=1e-12)
-    for n in (3, 4, 6):
-        src = rng.normal(size=(n, 3))
-        rot_true = random_rotation(rng)
-        dst = src @ rot_true.T + np.array([0.1, -0.2, 0.3])
-        rot, t = (np.asarray(v) for v in horn_align(jnp.asarray(src), jnp.asarray(dst)))
-        np.testing.assert_allclose(rot, rot_true, atol=1e-9)
-        mirrored = dst * np.array([1.0, 1.0, -1.0])
-        rot, _ = (np.asarray(v) for v in horn_align(jnp.asarray(src), jnp.asarray(mirrored)))
-        assert np.linalg.det(rot) == pytest.approx(1.0, abs=1e-9)
-        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
