@@ -182,12 +182,20 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     import jaxskel
 
     quiet = getattr(args, "quiet", False)
+    options = options_from_args(args)
     _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc}, args.overwrite)
+    if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
+        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc))
+                 if on]
+        if asked:
+            raise jaxskel.InputError(
+                f"{', '.join(asked)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
+            )
     if output.parent and not output.parent.exists():
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     trials = [jaxskel.load(p) for p in inputs]
-    result = jaxskel.fit_skeleton(trials, options=options_from_args(args), progress=not quiet)
+    result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
     extra_groups = {}
     if args.parameterize:
         if result.motion is None:

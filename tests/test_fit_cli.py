@@ -263,6 +263,10 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     bvh = tmp_path / "res.bvh"
     assert main(["fit", str(src), "-o", str(tmp_path / "joints.h5"), "--bvh", str(bvh), "--quiet", "--no-rigid"]) == 2
     assert "drop --no-rigid" in capsys.readouterr().err and not bvh.exists()
+    assert not (tmp_path / "joints.h5").exists()  # refused before the fit, not after it
+    assert main(["fit", str(src), "-o", str(tmp_path / "joints.h5"), "--trc", str(tmp_path / "m.trc"), "--quiet",
+                 "--no-ik"]) == 2
+    assert "--no-ik" in capsys.readouterr().err and not (tmp_path / "joints.h5").exists()
     assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--quiet"]) == 0
     data = jaxskel.result.read_bvh(bvh)
     assert data.n_frames == trial.n_frames and len(data.names) == 3
