@@ -87,7 +87,7 @@ def __getattr__(name: str) -> Any:
 
 def _where(name: str) -> str:
     """``"; it is jaxskel.<stage>.<name>"`` where a stage exports ``name``, else ``""``."""
-    if name.startswith("__"):
+    if name.startswith("_"):  # a probe (IPython, pickle, ...) must not import every stage
         return ""
     for sub in _SUBPACKAGES:
         if name in getattr(importlib.import_module(f".{sub}", __name__), "__all__", ()):

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 from collections.abc import Iterator, Mapping
 from typing import Any
@@ -380,7 +381,7 @@ class FitOptions:
 
     @classmethod
     def _where(cls) -> dict[str, tuple[str, str]]:
-        return {info.flat: (group, field) for group, field, info, _ in cls.settings()}
+        return _where()
 
     def replace(self, **settings: Any) -> FitOptions:
         """A copy with the given settings (flat names) changed, validated."""
@@ -420,3 +421,9 @@ class FitOptions:
     def record(self) -> dict[str, Any]:
         """The settings a result file records (:data:`RECORDED`)."""
         return {k: self.get(k) for k in RECORDED}
+
+
+@functools.cache
+def _where() -> dict[str, tuple[str, str]]:
+    """Flat name -> (group, field) of every setting (fixed by the declarations: built once)."""
+    return {info.flat: (group, field) for group, field, info, _ in FitOptions.settings()}

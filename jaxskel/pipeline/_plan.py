@@ -269,7 +269,7 @@ class StagePlan:
             if not crowded or n > min(base.max_segments, result.trial.n_markers):
                 break
             with self.stage(prep, "split"):
-                grown = segment_markers(result.trial, n, seed=options.seed, **options.segment.kwargs())
+                grown = self._segment(result.trial, n)
             grown = dataclasses.replace(
                 grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
                 split_from=base.split_from or base.n_segments,
