@@ -40,7 +40,10 @@ for _s in "LR":
         f"{_s}FWT": "pelvis", f"{_s}BWT": "pelvis", f"{_s}THI": f"{_s} thigh", f"{_s}KNE": f"{_s} thigh",
         f"{_s}SHN": f"{_s} shank", f"{_s}ANK": f"{_s} shank", f"{_s}HEE": f"{_s} foot",
         f"{_s}TOE": f"{_s} foot", f"{_s}MT5": f"{_s} foot",
+        # Plug-in-Gait names that the CMU set spells otherwise
+        f"{_s}ASI": "pelvis", f"{_s}PSI": "pelvis", f"{_s}TIB": f"{_s} shank",
     })
+PART["RBAK"] = "thorax"
 
 ADJACENT: set[frozenset[str]] = {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))}
 for _s in "LR":

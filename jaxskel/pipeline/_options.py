@@ -229,10 +229,13 @@ class SegmentOptions(_Group):
                                         "this many sigma from rigid (None: the eigengap alone)", flat="rigid_ratio")
     mend: bool = setting(True, BOOL, "move plainly misgrouped markers before scoring a clustering", flat="mend",
                          flag="--no-mend")
+    leave_out: bool = setting(True, BOOL, "leave out markers the motion cannot place: those seen only while the "
+                              "body held still (a static trial's extra markers) and stationary objects",
+                              flat="leave_out", flag="--no-leave-out")
 
     def kwargs(self) -> dict[str, Any]:
         """The keyword arguments of :func:`jaxskel.segment.segment_markers` (without the count)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "n_segments"}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("n_segments", "leave_out")}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,7 +34,7 @@ from ..io import Trial, median_extent
 from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
 from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
 from ..result import SkeletonResult, nonrigid_text
-from ..segment import Segmentation, combine_trials, segment_markers
+from ..segment import Segmentation, combine_trials, left_out_markers, segment_markers, white_noise
 from ..segment import segment_names as default_names
 from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, solver_shape
 from ._options import FitOptions
@@ -178,7 +178,8 @@ class StagePlan:
                 work, mapping = merge_labels(work)
                 work, report = self._clean_merged(work, report)
         with self.stage(prep, "segment"), device:
-            segmentation = self._segment(work)
+            work, left_out = self._leave_out(work)
+            segmentation = dataclasses.replace(self._segment(work), left_out=left_out)
         prep.trial, prep.cleaning, prep.label_mapping, prep.segmentation = work, report, mapping, segmentation
         return prep
 
@@ -310,6 +311,23 @@ class StagePlan:
             report, dropped={**report.dropped, **after.dropped}, duplicates={**report.duplicates, **after.duplicates}
         )
 
+    def _leave_out(self, work: Trial) -> tuple[Trial, dict[str, str]]:
+        """The trial without the markers the motion cannot place, and why each was left out
+        (:func:`jaxskel.segment.left_out_markers`; nothing with ``leave_out=False``)."""
+        s = self.options.segment
+        if not s.leave_out or s.rigid_ratio is None:
+            return work, {}
+        left = left_out_markers(work, white_noise=white_noise(work.positions), sigma_min=s.sigma_min,
+                                sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
+        if not left or len(left.labels) > work.n_markers - 3:
+            return work, {}
+        warnings.warn(
+            f"{len(left.labels)} marker(s) left out of the skeleton, the motion cannot place them: "
+            + "; ".join(f"{lab}: {why}" for lab, why in left.reasons.items()),
+            DegenerateMotionWarning, stacklevel=STACKLEVEL,
+        )
+        return work.drop_markers(list(left.labels)), dict(left.reasons)
+
     def _segment(self, work: Trial, n_segments: int | None = None) -> Segmentation:
         if work.n_markers < 3:
             raise DegenerateMotionError(
@@ -375,7 +393,8 @@ class StagePlan:
         }) if prep.cleaning is not None else None  # fmt: skip
         work, report = self._clean_merged(merged, report)
         with self.stage(prep, "segment"):
-            segmentation = self._segment(work)
+            work, left_out = self._leave_out(work)
+            segmentation = dataclasses.replace(self._segment(work), left_out=left_out)
         again = dataclasses.replace(prep, trial=work, cleaning=report, label_mapping=mapping, segmentation=segmentation)
         return self.motion(again, self.refit(again))
 

@@ -45,6 +45,9 @@ def summary_text(result: Any) -> str:
     width = max(map(len, result.segment_names), default=0)
     for name, group in zip(result.segment_names, result.segmentation.groups):
         lines.append(f"  {name:>{width}}: {', '.join(group)}")
+    if seg.left_out:
+        lines.append(f"left out of the skeleton ({len(seg.left_out)} marker(s) the motion cannot place):")
+        lines += [f"  {label}: {why}" for label, why in seg.left_out.items()]
     anchored = (result.skeleton.diagnostics.get("anchored") if result.skeleton is not None else None) or {}
     resolution = result.joint_resolutions()
     lines += _joint_lines(result, anchored, resolution)

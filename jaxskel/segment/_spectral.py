@@ -234,6 +234,9 @@ class Segmentation:
     white_noise
         Std-dev per coordinate (metres) of the recording's white measurement noise
         (:func:`white_noise`), taken out of A before clustering.
+    left_out
+        Markers left out of the grouping because the motion cannot place them, label ->
+        reason (:func:`jaxskel.segment.left_out_markers`); they are not in :attr:`labels`.
     """
 
     labels: tuple[str, ...]
@@ -254,6 +257,7 @@ class Segmentation:
     split_markers: tuple[str, ...] = ()
     rigid_count: int = 0
     white_noise: float = 0.0
+    left_out: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def groups(self) -> list[tuple[str, ...]]:
