@@ -93,6 +93,12 @@ def _joint_lines(result: Any, anchored: dict[str, Any], resolution: np.ndarray) 
             f"{int(t.steps[j]):5d}  {bool(t.converged[j])!s:5}  {sweep[j]:6.1f}  {resolution_cell(resolution[j])}"
             + ("  not exercised" if sweep[j] < MIN_EXERCISE_DEG else "")
         )
+    placement = (result.skeleton.diagnostics.get("hinge_placement") if result.skeleton is not None else None) or []
+    placed = [(names[j], how) for j, how in enumerate(placement) if how]
+    if placed:
+        lines.append("  hinge centres (the motion leaves each free along its axis) placed "
+                     + "; ".join(f"{name}: {'in the plane of its neighbouring joints' if how == 'limb plane' else how}"
+                                 for name, how in placed))
     return lines
 
 def _bone_lines(result: Any, resolution: np.ndarray) -> list[str]:

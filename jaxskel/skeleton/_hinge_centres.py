@@ -33,6 +33,18 @@ each equation weighted by the inverse variance of neighbour k's position, with a
 ``1e-6 s^2`` so that a chain of parallel hinges with nothing else attached keeps the
 prior's placement. For a single sliding joint this is the weighted mean of its
 neighbours' coordinates along the axis.
+
+**Markers that straddle the joint** take precedence (:func:`straddling_pair`): where two
+markers of the joint's segments sit on the axis on either side of the centre (the medial
+and lateral epicondyles of a knee, the two styloids of a wrist), the centre goes midway
+between them along the axis, which is where a person puts it. With ``t = a . (m - p)``
+the coordinate of marker m along the axis from the joint p and ``r`` its distance from
+the axis, a pair straddles the joint when ``t_1 > 0 > t_2`` and both ``r`` are at most
+:data:`STRADDLE_RATIO` times their separation ``t_1 - t_2`` (both lie within ~17 degrees
+of the axis as seen from their midpoint); of several such pairs the one closest to the
+axis (smallest ``max(r) / (t_1 - t_2)``) is taken, and the shift is ``(t_1 + t_2) / 2``.
+Such a joint is then a fixed neighbour (``s_k`` known) in the limb-plane equations of the
+others.
 """
 
 from __future__ import annotations
@@ -40,7 +52,10 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-__all__ = ["MAX_BONE_COSINE", "MAX_OFF_AXIS", "MAX_OFF_AXIS_REFINED", "MIN_ROTATION_RMS", "hinge_axes", "hinge_shifts"]
+__all__ = [
+    "MAX_BONE_COSINE", "MAX_OFF_AXIS", "MAX_OFF_AXIS_REFINED", "MIN_ROTATION_RMS", "STRADDLE_RATIO", "hinge_axes",
+    "axial_coordinates", "hinge_shifts", "straddling_pair",
+]
 
 #: A joint slides only if it turns as a hinge: the share of its rotation about the other
 #: axes (:func:`hinge_axes`) below 0.12, i.e. RMS angle about them under ~35 % of the
@@ -71,6 +86,12 @@ MAX_BONE_COSINE = 0.5
 #: taken: below that the direction of least rotation is set by noise, and a pair that
 #: does not move at all (every direction "least rotated") would look like a perfect hinge.
 MIN_ROTATION_RMS = float(np.deg2rad(5.0))
+
+#: Two markers straddle a hinge when each lies at most this many times their separation
+#: along the axis from it (module docstring): 0.3 admits epicondyle markers 1-3 cm off the
+#: axis of a 9-12 cm wide knee and turns away the markers of a limb's surface, which lie
+#: across the axis, not along it.
+STRADDLE_RATIO = 0.3
 
 #: Ridge on the shifts (m^2 per m^2 of equation residual); see the module docstring.
 _RIDGE = 1e-6
@@ -155,3 +176,39 @@ def hinge_shifts(
     b = np.concatenate([rhs, np.zeros(unknown.size)])
     shifts[unknown] = np.linalg.lstsq(a, b, rcond=None)[0]
     return shifts
+
+
+def straddling_pair(
+    along: Float[np.ndarray, " N"], off: Float[np.ndarray, " N"]
+) -> tuple[int, int, float] | None:
+    """The pair of markers that straddles a hinge (module docstring), or ``None``.
+
+    ``along[i]``: marker i's coordinate along the axis from the current centre (metres);
+    ``off[i]``: its distance from the axis. Returns ``(i, k, shift)`` with ``along[i] > 0 >
+    along[k]`` and ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
+    the centre midway between them.
+    """
+    t = np.asarray(along, dtype=float)
+    r = np.asarray(off, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(r)
+    pos = np.flatnonzero(ok & (t > 0))
+    neg = np.flatnonzero(ok & (t < 0))
+    if not pos.size or not neg.size:
+        return None
+    sep = t[pos][:, None] - t[neg][None, :]
+    worst = np.maximum(r[pos][:, None], r[neg][None, :]) / sep
+    a, b = np.unravel_index(np.argmin(worst), worst.shape)
+    if worst[a, b] > STRADDLE_RATIO:
+        return None
+    i, k = int(pos[a]), int(neg[b])
+    return i, k, float(0.5 * (t[i] + t[k]))
+
+
+def axial_coordinates(
+    points: Float[np.ndarray, "N 3"], centre: Float[np.ndarray, " 3"], axis: Float[np.ndarray, " 3"]
+) -> tuple[Float[np.ndarray, " N"], Float[np.ndarray, " N"]]:
+    """``(t, r)``: each point's coordinate along the unit ``axis`` from ``centre`` and its
+    distance from the axis line."""
+    u = np.asarray(points, dtype=float) - centre
+    t = u @ axis
+    return t, np.linalg.norm(u - t[:, None] * axis, axis=-1)

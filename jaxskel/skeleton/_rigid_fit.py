@@ -74,7 +74,9 @@ from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
 from .._math.rotation import quat_to_matrix
 from ..io import Trial
-from ._hinge_centres import MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, hinge_axes, hinge_shifts
+from ._hinge_centres import (
+    MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, axial_coordinates, hinge_axes, hinge_shifts, straddling_pair,
+)
 from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
     RESULT_MAX_STEPS,
@@ -291,9 +293,10 @@ def _place_hinges(
     gpa_rms: np.ndarray,
     usable: np.ndarray,
     alignable: np.ndarray,
+    covered: np.ndarray,
     js: np.ndarray,
     jm: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Move sliding joints along their axes (:mod:`jaxskel.skeleton._hinge_centres`), in place.
 
     ``gpa_rms`` (S, P): each Procrustes point's scatter about its mean (neighbour weights).
@@ -302,15 +305,16 @@ def _place_hinges(
     along the axis seen in that frame (the parent's pose, else the child's, else the
     nearest frame's). Returns the shifts (J,), the parent-frame axes (J, 3; NaN for
     joints not moved) and each joint's weight as a neighbour (J,; inverse variance of
-    its centre, for :func:`_replace_hinges`). A joint moves only if it turns as a hinge
-    (``MAX_OFF_AXIS``) and both segments were posed by Procrustes in at least 3 common
-    frames.
+    its centre, for :func:`_replace_hinges`) and the pair of (used) markers that straddles
+    each joint (J, 2; -1 where none does: the limb plane placed it). A joint moves only if
+    it turns as a hinge (``MAX_OFF_AXIS``) and both segments were posed by Procrustes in at
+    least 3 common frames.
     """
     n_joints = edges.shape[0]
     shift = np.zeros(n_joints)
     axis_parent = np.full((n_joints, 3), np.nan)
     if sliding is None:
-        return shift, axis_parent, np.ones(n_joints)
+        return shift, axis_parent, np.ones(n_joints), np.full((n_joints, 2), -1)
     sliding = np.asarray(sliding, dtype=bool)
     if sliding.shape != (n_joints,):
         raise InputError(f"sliding_joints must be {n_joints} booleans (one per joint); got shape {sliding.shape}")
@@ -329,11 +333,31 @@ def _place_hinges(
             axes[j] = a_p, a_c
             movable[j] = off_axis < MAX_OFF_AXIS
     points = np.nan_to_num(points)
+    # Markers that straddle a hinge place it midway between them; it is then a fixed
+    # neighbour of the others' limb-plane placement.
+    straddle = np.full((n_joints, 2), -1)
+    placed = np.zeros(n_joints)
+    for j in np.flatnonzero(movable):
+        ids, along, off = [], [], []
+        for side in (0, 1):
+            s = int(edges[j, side])
+            cloud = ref[s, : len(members[s])]
+            seen = covered[s, : len(members[s])] & np.isfinite(cloud).all(axis=1)
+            t, r = axial_coordinates(cloud[seen], points[j, side], axes[j, side])
+            ids += members[s][seen].tolist()
+            along += t.tolist()
+            off += r.tolist()
+        found = straddling_pair(np.asarray(along), np.asarray(off))
+        if found is not None:
+            straddle[j] = ids[found[0]], ids[found[1]]
+            placed[j] = found[2]
+            points[j, 0] += placed[j] * axes[j, 0]
+            points[j, 1] += placed[j] * axes[j, 1]
     # Neighbours weighted by how steadily their centre sits on its segments (Procrustes
     # scatter, floor 1 mm): a wandering wrist or ankle centre moves the elbow or knee less.
     scatter = np.array([np.mean([gpa_rms[edges[j, i], slot(edges[j, i], j)] for i in (0, 1)]) for j in range(n_joints)])
     weights = 1.0 / (np.nan_to_num(scatter, nan=1.0) ** 2 + 1e-6)
-    shift = hinge_shifts(edges, movable, points, axes, weights)
+    shift = hinge_shifts(edges, movable & (straddle[:, 0] < 0), points, axes, weights) + placed
     frames = np.arange(js.shape[0])
     for j in np.flatnonzero(shift):
         p, c = int(edges[j, 0]), int(edges[j, 1])
@@ -347,7 +371,7 @@ def _place_hinges(
         world /= np.linalg.norm(world, axis=1, keepdims=True)
         js[:, j] = np.where(jm[:, j, None], js[:, j] + shift[j] * world, js[:, j])
         axis_parent[j] = axes[j, 0]
-    return shift, axis_parent, weights
+    return shift, axis_parent, weights, straddle
 
 
 def _turns_as_hinge(
@@ -373,8 +397,11 @@ def _replace_hinges(
     keep: np.ndarray,
     weights: np.ndarray,
     axis_local: np.ndarray,
+    straddle: np.ndarray,
 ) -> np.ndarray:
-    """Put the moved hinges back into their limb plane on the refined skeleton, in place.
+    """Put the moved hinges back on the refined skeleton, in place: midway between their
+    straddling markers (``straddle``, J x 2 used-marker indices, -1 for none), the others
+    into their limb plane.
 
     Frames: a segment's origin is its proximal joint, so joint j sits at ``j_th[j]`` in
     its parent and at 0 in its child. Moving it by ``s a`` moves ``j_th[j]`` by ``s a_p``
@@ -385,8 +412,6 @@ def _replace_hinges(
     """
     n_joints = edges.shape[0]
     moved = np.isfinite(axis_local[:, 0])
-    points = np.zeros((n_joints, 2, 3))
-    points[:, 0] = j_th
     axes = np.zeros((n_joints, 2, 3))
     to_local = np.swapaxes(rot[keep], -1, -2)  # world -> segment
     ok = moved.copy()
@@ -397,13 +422,28 @@ def _replace_hinges(
         ok[j] = off_axis < MAX_OFF_AXIS
         if ok[j]:
             axis_local[j] = axes[j, 0]
-    shift = hinge_shifts(edges, ok, points, axes, weights)
-    for j in np.flatnonzero(ok):
+
+    def move(j: int, amount: float) -> None:
         c = int(edges[j, 1])
-        j_th[j] += shift[j] * axes[j, 0]
-        m_th[useg == c] -= shift[j] * axes[j, 1]
-        j_th[edges[:, 0] == c] -= shift[j] * axes[j, 1]
-    return shift
+        j_th[j] += amount * axes[j, 0]
+        m_th[useg == c] -= amount * axes[j, 1]
+        j_th[edges[:, 0] == c] -= amount * axes[j, 1]
+
+    shift = np.zeros(n_joints)
+    straddled = ok & (straddle[:, 0] >= 0)
+    for j in np.flatnonzero(straddled):
+        # midway between the straddling markers, on the refined offsets: a parent's marker
+        # from the joint, a child's from its origin (the joint itself)
+        p = int(edges[j, 0])
+        along = [axes[j, 0] @ (m_th[i] - j_th[j]) if useg[i] == p else axes[j, 1] @ m_th[i] for i in straddle[j]]
+        shift[j] = 0.5 * (along[0] + along[1])
+        move(j, shift[j])
+    points = np.zeros((n_joints, 2, 3))
+    points[:, 0] = j_th
+    plane = hinge_shifts(edges, ok & ~straddled, points, axes, weights)
+    for j in np.flatnonzero(ok & ~straddled):
+        move(j, plane[j])
+    return shift + plane
 
 
 # ------------------------------------------------------------------ refinement
@@ -715,8 +755,8 @@ def fit_rigid(
             sv = np.linalg.svd(cloud - cloud.mean(axis=0), compute_uv=False)
             alignable[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
 
-    hinge_shift, hinge_axis, weights_of_joints = _place_hinges(
-        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, js, jm
+    hinge_shift, hinge_axis, weights_of_joints, straddle = _place_hinges(
+        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, covered, js, jm
     )
 
     # Local frames: world-aligned at a common frame (or the segment's nearest usable one).
@@ -812,7 +852,7 @@ def fit_rigid(
         # The refinement weighs the joint centres lightly, so a hinge may drift along its
         # axis again with the markers' soft tissue: place it once more on the final poses.
         m_th, j_th = np.array(m_th), np.array(j_th)
-        again = _replace_hinges(edges, useg, m_th, j_th, rot, keep, weights_of_joints, hinge_axis_local)
+        again = _replace_hinges(edges, useg, m_th, j_th, rot, keep, weights_of_joints, hinge_axis_local, straddle)
         if np.any(again):
             hinge_shift = hinge_shift + again
             _, _, sol, _, _, _ = _refine(
@@ -904,6 +944,11 @@ def fit_rigid(
         "ik_failures": int((results != RESULT_SUCCESSFUL).sum()),
         "procrustes_segments": [int(s) for s in np.flatnonzero(alignable)],
         "hinge_shift": [float(v) for v in hinge_shift],
+        "hinge_placement": [
+            "" if not np.isfinite(hinge_axis_local[j, 0]) and straddle[j, 0] < 0
+            else f"between {labels[used[straddle[j, 0]]]} and {labels[used[straddle[j, 1]]]}" if straddle[j, 0] >= 0
+            else "limb plane" for j in range(n_joints)
+        ],
         "hinge_axis": hinge_axis_rest.tolist(),
         "procrustes_rms": [float(np.sqrt(np.mean(gpa_rms[s][covered[s]] ** 2))) if covered[s].any() else float("nan")
                            for s in range(n_seg)],

@@ -206,3 +206,39 @@ def test_fit_rigid_rejects_bad_placement_arguments():
         jaxskel.skeleton.fit_rigid(trial, truth.marker_segment, truth.edges, joints, sliding_joints=[True] * 5)
     with pytest.raises(jaxskel.InputError, match="joint_weight"):
         jaxskel.skeleton.fit_rigid(trial, truth.marker_segment, truth.edges, joints, joint_weight=0.0)
+
+
+def test_a_hinge_goes_midway_between_the_markers_that_straddle_it():
+    """A full body with medial and lateral epicondyle markers on the left knee (on the true
+    flexion axis, 5 cm either side of the centre, 1 mm noise, on the thigh): the knee
+    centre goes midway between them (the true centre, by construction) and the fit says
+    so; the right knee, without such markers, stays in the limb plane."""
+    body = synth.full_body(seed=0)
+    trial, truth = synth.simulate(body, duration=20.0, seed=0, noise=0.001)
+    j = list(truth.joint_names).index("l_knee")
+    thigh = int(truth.edges[j, 0])
+    axis = np.asarray(truth.joint_axes[j])[0]
+    local = truth.joint_offsets[j, 0] + np.outer([0.05, -0.05], axis / np.linalg.norm(axis))  # (2, 3) thigh frame
+    rot, trans = truth.segment_rotations[:, thigh], truth.segment_translations[:, thigh]
+    epicondyles = np.einsum("fab,mb->fma", rot, local) + trans[:, None]
+    epicondyles += np.random.default_rng(5).normal(0.0, 0.001, epicondyles.shape)
+    knees = trial.replace(positions=np.concatenate([trial.positions, epicondyles], axis=1),
+                          labels=trial.labels + ("LKNEL", "LKNEM"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = jaxskel.fit_skeleton(knees, ik=False)
+    idx = [knees.labels.index(lab) for lab in result.trial.labels]
+    tseg = np.append(truth.marker_segment, [thigh, thigh])[idx]
+    seg = result.segmentation.marker_segment
+    to_true = {s: int(np.bincount(tseg[seg == s]).argmax()) for s in range(result.n_segments)}
+    fitted = {frozenset((to_true[int(p)], to_true[int(c)])): k for k, (p, c) in enumerate(result.edges)}
+    placement = result.skeleton.diagnostics["hinge_placement"]
+    k_left = fitted[frozenset(map(int, truth.edges[j]))]
+    assert placement[k_left] in ("between LKNEL and LKNEM", "between LKNEM and LKNEL")
+    assert "between LKNE" in result.summary()
+    k_right = fitted[frozenset(map(int, truth.edges[list(truth.joint_names).index("r_knee")]))]
+    assert placement[k_right] == "limb plane"
+    # the placed centre on the rigid skeleton: its distance to the true centre, every frame
+    ik = jaxskel.skeleton.inverse_kinematics(result.skeleton, knees.select_markers(list(result.trial.labels)))
+    err = np.linalg.norm(ik.joint_positions[:, k_left] - truth.joint_positions[:, j], axis=-1)
+    assert np.sqrt(np.nanmean(err**2)) < 0.004, np.sqrt(np.nanmean(err**2))

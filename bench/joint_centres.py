@@ -1,0 +1,155 @@
+"""Joint centres against a lab's reference on real recordings (issue 44's targets).
+
+* ``opensim_models/Hamner``: treadmill running, fitted alone and together with the static
+  trial. Reference (``tests/osim_reference.py``): the scaled model's hip placed by the
+  pelvis markers; knee and ankle at the midpoints of the static trial's epicondyle and
+  malleolus markers; each carried into the running frames by its segment's cluster.
+* ``pycgm/Movement_trial.c3d``: Plug-in-Gait's own joint centres in every frame
+  (``LFEP``/``RFEP`` hips, ``LFEO``/``RFEO`` knees, ``LTIO``/``RTIO`` ankles).
+
+A fitted joint is matched to a reference joint by the body parts of its two segments (the
+body-part maps of ``tests/human_markers.py``, test data; for Hamner the cluster labels).
+Reported: RMS over frames of the distance between the fitted and the reference centre, and
+the thigh and shank lengths (hip-knee and knee-ankle distances) against the reference's.
+The target is 20 mm for the centres and 15 mm for the lengths.
+
+Usage::
+
+    python bench/joint_centres.py                      # ~5 min on 2 cores
+    python bench/joint_centres.py --markdown docs/bench/joint_centres.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import jaxskel
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from human_markers import segment_parts  # noqa: E402
+from osim_reference import hamner_joint_centres, read_osim  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+HAMNER = DATA / "opensim_models" / "Hamner"
+PYCGM = DATA / "pycgm" / "Movement_trial.c3d"
+JOINTS = ("hip", "knee", "ankle")
+
+
+def _fit(trials):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t0 = time.perf_counter()
+        result = jaxskel.fit_skeleton(trials, progress=False)
+    return result, time.perf_counter() - t0
+
+
+def _joint(result, a: int, b: int) -> int | None:
+    for j, e in enumerate(np.asarray(result.edges).tolist()):
+        if set(e) == {a, b} and a != b:
+            return j
+    return None
+
+
+def _errors(result, frames: slice, segments: dict[str, tuple[int, int]], reference: dict[str, np.ndarray]):
+    """``{joint: rms mm or None}`` and ``{bone: (fitted, reference) mm}``."""
+    jp = result.joint_positions[frames]
+    centres, rms = {}, {}
+    for name, (a, b) in segments.items():
+        j = _joint(result, a, b) if min(a, b) >= 0 else None
+        if j is None:
+            rms[name] = None
+            continue
+        centres[name] = jp[:, j]
+        d = np.linalg.norm(jp[:, j] - reference[name], axis=-1)
+        rms[name] = float(1e3 * np.sqrt(np.nanmean(d**2)))
+    bones = {}
+    for side in "RL":
+        for bone, (p, q) in (("thigh", ("hip", "knee")), ("shank", ("knee", "ankle"))):
+            k0, k1 = f"{side} {p}", f"{side} {q}"
+            if k0 in centres and k1 in centres:
+                fit = np.nanmedian(np.linalg.norm(centres[k0] - centres[k1], axis=-1))
+                ref = np.nanmedian(np.linalg.norm(reference[k0] - reference[k1], axis=-1))
+                bones[f"{side} {bone}"] = (float(1e3 * fit), float(1e3 * ref))
+    return rms, bones
+
+
+def hamner(with_static: bool):
+    static = jaxskel.load(HAMNER / "subject02_static.trc")
+    running = jaxskel.load(HAMNER / "subject02_running.trc")
+    result, seconds = _fit([static, running] if with_static else running)
+    frames = slice(*result.trial_bounds[1]) if with_static else slice(None)
+    reference = hamner_joint_centres(read_osim(HAMNER / "subject02_scaled.osim"), static, running)
+    labels = list(result.trial.labels)
+    seg = np.asarray(result.segmentation.marker_segment)
+
+    def of(label):
+        return int(seg[labels.index(label)]) if label in labels else -1
+
+    segments = {}
+    for s in "RL":
+        pelvis, thigh, shank, foot = of("R.ASIS"), of(f"{s}.Thigh.Upper"), of(f"{s}.Shank.Upper"), of(f"{s}.Heel")
+        segments.update({f"{s} hip": (pelvis, thigh), f"{s} knee": (thigh, shank), f"{s} ankle": (shank, foot)})
+    return result, seconds, *_errors(result, frames, segments, reference)
+
+
+def pycgm():
+    trial = jaxskel.load(PYCGM)
+    outputs = jaxskel.load(PYCGM, drop_non_markers=False, drop_unlabeled=True)
+    result, seconds = _fit(trial)
+    names = {"R hip": "RFEP", "L hip": "LFEP", "R knee": "RFEO", "L knee": "LFEO", "R ankle": "RTIO", "L ankle": "LTIO"}
+    reference = {k: outputs.positions[:, outputs.labels.index(v)] for k, v in names.items()}
+    parts = segment_parts(result.trial.labels, result.segmentation.marker_segment)
+
+    def of(part):
+        found = [i for i, p in enumerate(parts) if p == part]
+        return found[0] if found else -1
+
+    trunk = of("pelvis") if of("pelvis") >= 0 else of("thorax")
+    segments = {}
+    for s in "RL":
+        thigh, shank, foot = of(f"{s} thigh"), of(f"{s} shank"), of(f"{s} foot")
+        segments.update({f"{s} hip": (trunk, thigh), f"{s} knee": (thigh, shank), f"{s} ankle": (shank, foot)})
+    return result, seconds, *_errors(result, slice(None), segments, reference)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--markdown", type=Path)
+    args = ap.parse_args(argv)
+    rows = []
+    for name, run in (("Hamner running", lambda: hamner(False)), ("Hamner static + running", lambda: hamner(True)),
+                      ("pyCGM Movement_trial", pycgm)):
+        result, seconds, rms, bones = run()
+        rows.append((name, seconds, rms, bones, len(result.segmentation.left_out)))
+        print(name, f"{seconds:.1f} s", {k: (None if v is None else round(v, 1)) for k, v in rms.items()},
+              {k: tuple(round(x) for x in v) for k, v in bones.items()}, flush=True)
+    if args.markdown:
+        head = ["recording", "fit s", "left out"] + [f"{s} {j}" for s in "RL" for j in JOINTS]
+        lines = [
+            "# Joint centres against a lab's reference (`python bench/joint_centres.py`)", "",
+            "Written by `bench/joint_centres.py` on a 2-core CPU, `fit_skeleton` defaults. RMS over frames of "
+            "the fitted centre's distance to the reference centre, mm (`-`: the tree has no joint between those "
+            "body parts). Target (issue 44): 20 mm. References: see the script's docstring.", "",
+            "| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+        ]
+        for name, seconds, rms, _, left in rows:
+            cells = [name, f"{seconds:.0f}", str(left)] + [
+                "-" if rms.get(f"{s} {j}") is None else f"{rms[f'{s} {j}']:.0f}" for s in "RL" for j in JOINTS]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines += ["", "Bone lengths (median hip-knee and knee-ankle distance), fitted / reference, mm "
+                  "(target: within 15 mm):", ""]
+        for name, _, _, bones, _ in rows:
+            text = ", ".join(f"{k} {v[0]:.0f} / {v[1]:.0f}" for k, v in bones.items()) or "none matched"
+            lines.append(f"* {name}: {text}")
+        args.markdown.write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
