@@ -58,7 +58,8 @@ def _joint(result, a: int, b: int) -> int | None:
 
 def _errors(result, frames: slice, segments: dict[str, tuple[int, int]], reference: dict[str, np.ndarray]):
     """``{joint: rms mm or None}`` and ``{bone: (fitted, reference) mm}``."""
-    jp = result.joint_positions[frames]
+    final = result.motion.joint_positions if result.motion is not None else result.joint_positions
+    jp = final[frames]
     centres, rms = {}, {}
     for name, (a, b) in segments.items():
         j = _joint(result, a, b) if min(a, b) >= 0 else None

@@ -385,10 +385,12 @@ def all_pairs_problem(
                 "which the joints move (e.g. a range-of-motion trial), or give n_segments"
             )
         raise DegenerateMotionError("only one segment: there is no joint to fit")
-    n_frames = trial.n_frames
-    stride = max(1, int(np.ceil(n_frames / max_frames)))
-    frames = np.arange(0, n_frames, stride)
     x, mask = trial.to_arrays()
+    # evenly spaced among the frames that show any marker (a still trial fitted with a moving
+    # one is blanked out of the joint stages: jaxskel.pipeline.moving_frames)
+    shown = np.flatnonzero(mask.any(axis=1))
+    stride = max(1, int(np.ceil(shown.size / max_frames)))
+    frames = shown[::stride]
     sizes = np.bincount(seg[seg >= 0], minlength=s)
     noise = float(np.nanmedian(segmentation.within_std())) if (sizes > 1).any() else 0.0
 

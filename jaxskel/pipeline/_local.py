@@ -27,7 +27,7 @@ from ._batch_io import (
     summary_row,
 )
 from ._options import FitOptions
-from ._plan import PreparedFit, StagePlan
+from ._plan import PreparedFit, StagePlan, moving_frames
 
 __all__ = ["DEVICE_LOCK", "Item", "TrialOutcome", "default_devices", "failed", "run_local"]
 
@@ -124,7 +124,7 @@ def _prepare(item: Item, options: FitOptions) -> _Work:
     j = options.joints
     with plan.stage(work.prep, "joint costs"):
         work.pairs = all_pairs_problem(
-            work.prep.trial, work.prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames, method=j.method,
+            moving_frames(work.prep.trial, work.prep.segmentation), work.prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames, method=j.method,
         )
     return work
 
@@ -171,8 +171,8 @@ def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Ca
             # other JAX stage, or it overlaps a finishing trial's programs and both hang
             with plan.stage(w.prep, "tree joints"), DEVICE_LOCK:
                 w.tree = tree_problem(
-                    w.prep.trial, w.prep.segmentation, pair_costs, root=j.root, alpha=j.alpha,
-                    alpha_tree=j.alpha_tree, method=j.method, pose_check=j.pose_check,
+                    moving_frames(w.prep.trial, w.prep.segmentation), w.prep.segmentation, pair_costs, root=j.root,
+                    alpha=j.alpha, alpha_tree=j.alpha_tree, method=j.method, pose_check=j.pose_check,
                 )
             w.prep.timings["joint costs"] += share
             w.pairs = None  # free the padded arrays

@@ -34,7 +34,7 @@ from ..io import Trial, median_extent
 from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
 from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
 from ..result import SkeletonResult, nonrigid_text
-from ..segment import Segmentation, combine_trials, left_out_markers, segment_markers, white_noise
+from ..segment import Segmentation, combine_trials, left_out_markers, segment_markers, still_trials, white_noise
 from ..segment import segment_names as default_names
 from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, solver_shape
 from ._options import FitOptions
@@ -49,7 +49,7 @@ from ._warnings import (
     warn_untested,
 )
 
-__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units"]
+__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units", "moving_frames"]
 
 
 def check_units(trial: Trial) -> None:
@@ -75,6 +75,17 @@ def check_units(trial: Trial) -> None:
             f"{name}: the markers span only {extent:.2g} units; positions do not look like metres "
             "(kilometres?). Convert to metres first."
         )
+
+
+def moving_frames(trial: Trial, segmentation: Segmentation) -> Trial:
+    """``trial`` with the frames of its still trials (``segmentation.still_spans``) blanked:
+    what the joint stages read."""
+    if not segmentation.still_spans:
+        return trial
+    positions = np.array(trial.positions, copy=True)
+    for start, stop in segmentation.still_spans:
+        positions[start:stop] = np.nan
+    return trial.replace(positions=positions)
 
 
 def as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
@@ -109,6 +120,9 @@ class PreparedFit:
     #: The cleaned trial given to merge_labels (``None`` without merging): the
     #: skeleton's confirmation of the merges starts again from it.
     merge_input: Trial | None = None
+    #: The markers left out of the grouping (:attr:`Segmentation.left_out`), on the fit's
+    #: frames: landmarks that may still place a hinge they straddle (``None``: none).
+    landmarks: Trial | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,20 +192,23 @@ class StagePlan:
                 work, mapping = merge_labels(work)
                 work, report = self._clean_merged(work, report)
         with self.stage(prep, "segment"), device:
-            work, left_out = self._leave_out(work)
-            segmentation = dataclasses.replace(self._segment(work), left_out=left_out)
+            work, left_out, prep.landmarks = self._leave_out(work)
+            segmentation = dataclasses.replace(self._segment(work), left_out=left_out,
+                                               still_spans=self._still_spans(work, bounds))
         prep.trial, prep.cleaning, prep.label_mapping, prep.segmentation = work, report, mapping, segmentation
         return prep
 
     def joints(self, prep: PreparedFit) -> Topology:
-        """All-pairs joint costs, then the tree and its joints on all frames."""
+        """All-pairs joint costs, then the tree and its joints on all frames (but the still
+        trials', which say nothing about joints: :attr:`Segmentation.still_spans`)."""
         j = self.options.joints
+        moving = moving_frames(prep.trial, prep.segmentation)
         with self.stage(prep, "joint costs"):
-            pairs = joint_costs(prep.trial, prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames,
+            pairs = joint_costs(moving, prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames,
                                 method=j.method)
         with self.stage(prep, "tree joints"):
             return fit_topology(
-                prep.trial, prep.segmentation, pairs, root=j.root, alpha=j.alpha, alpha_tree=j.alpha_tree,
+                moving, prep.segmentation, pairs, root=j.root, alpha=j.alpha, alpha_tree=j.alpha_tree,
                 method=j.method, pose_check=j.pose_check,
             )
 
@@ -211,7 +228,7 @@ class StagePlan:
             require_one_tree(topology, segmentation, names)
         with self.stage(prep, "rigid"):
             if rigid:
-                skeleton = self._rigid(work, segmentation, topology, names)
+                skeleton = self._rigid(work, segmentation, topology, names, prep.landmarks)
         return SkeletonResult(
             input_labels=prep.input_labels, trial=work, cleaning=prep.cleaning, label_mapping=prep.label_mapping,
             segmentation=segmentation, topology=topology, skeleton=skeleton, motion=None, segment_names=names,
@@ -275,6 +292,7 @@ class StagePlan:
                 grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
                 split_from=base.split_from or base.n_segments,
                 split_markers=result.segmentation.split_markers + crowded,
+                left_out=base.left_out, still_spans=base.still_spans,
             )
             with warnings.catch_warnings(record=True) as caught:
                 try:
@@ -311,22 +329,32 @@ class StagePlan:
             report, dropped={**report.dropped, **after.dropped}, duplicates={**report.duplicates, **after.duplicates}
         )
 
-    def _leave_out(self, work: Trial) -> tuple[Trial, dict[str, str]]:
-        """The trial without the markers the motion cannot place, and why each was left out
-        (:func:`jaxskel.segment.left_out_markers`; nothing with ``leave_out=False``)."""
+    def _still_spans(self, work: Trial, bounds: Sequence[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
+        """The frame ranges of the trials in which no two segments move (:func:`still_trials`)."""
+        s = self.options.segment
+        if not s.leave_out or s.rigid_ratio is None or len(bounds) < 2:
+            return ()
+        still = still_trials(work, tuple(bounds), white_noise=white_noise(work.positions), sigma_min=s.sigma_min,
+                             sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
+        return tuple(tuple(bounds[i]) for i in still)
+
+    def _leave_out(self, work: Trial) -> tuple[Trial, dict[str, str], Trial | None]:
+        """The trial without the markers the motion cannot place, why each was left out
+        (:func:`jaxskel.segment.left_out_markers`; nothing with ``leave_out=False``), and
+        those markers as a trial (landmarks for the hinges they straddle; ``None``: none)."""
         s = self.options.segment
         if not s.leave_out or s.rigid_ratio is None:
-            return work, {}
+            return work, {}, None
         left = left_out_markers(work, white_noise=white_noise(work.positions), sigma_min=s.sigma_min,
                                 sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
         if not left or len(left.labels) > work.n_markers - 3:
-            return work, {}
+            return work, {}, None
         warnings.warn(
             f"{len(left.labels)} marker(s) left out of the skeleton, the motion cannot place them: "
             + "; ".join(f"{lab}: {why}" for lab, why in left.reasons.items()),
             DegenerateMotionWarning, stacklevel=STACKLEVEL,
         )
-        return work.drop_markers(list(left.labels)), dict(left.reasons)
+        return work.drop_markers(list(left.labels)), dict(left.reasons), work.select_markers(list(left.labels))
 
     def _segment(self, work: Trial, n_segments: int | None = None) -> Segmentation:
         if work.n_markers < 3:
@@ -338,17 +366,18 @@ class StagePlan:
         n = s.n_segments if n_segments is None else n_segments
         return segment_markers(work, n, seed=self.options.seed, **s.kwargs())
 
-    def _rigid(self, work: Trial, segmentation: Segmentation, topology: Topology, names: Sequence[str]) -> Skeleton:
+    def _rigid(self, work: Trial, segmentation: Segmentation, topology: Topology, names: Sequence[str],
+               landmarks: Trial | None = None) -> Skeleton:
         o = self.options.skeleton
         sliding = np.asarray(topology.undetermined) > 0 if o.hinge_centres == "limb_plane" else None
         centres, anchored = topology.joint_positions, None
         if o.joint_centres == "anchored":
-            x, mask = work.to_arrays()
+            x, mask = moving_frames(work, segmentation).to_arrays()
             anchored = anchored_centres(x, mask, segmentation.marker_segment, topology.edges, topology.joint_positions)
             centres = anchored.joint_positions
         skeleton = fit_rigid(
             work, segmentation.marker_segment, topology.edges, centres, root=topology.root,
-            sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT,
+            sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT, landmarks=landmarks,
         )
         if anchored is not None:
             report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
@@ -393,8 +422,10 @@ class StagePlan:
         }) if prep.cleaning is not None else None  # fmt: skip
         work, report = self._clean_merged(merged, report)
         with self.stage(prep, "segment"):
-            work, left_out = self._leave_out(work)
-            segmentation = dataclasses.replace(self._segment(work), left_out=left_out)
-        again = dataclasses.replace(prep, trial=work, cleaning=report, label_mapping=mapping, segmentation=segmentation)
+            work, left_out, landmarks = self._leave_out(work)
+            segmentation = dataclasses.replace(self._segment(work), left_out=left_out,
+                                               still_spans=self._still_spans(work, prep.trial_bounds))
+        again = dataclasses.replace(prep, trial=work, cleaning=report, label_mapping=mapping, segmentation=segmentation,
+                                    landmarks=landmarks)
         return self.motion(again, self.refit(again))
 

@@ -13,7 +13,8 @@ Schema version 1 (documented in the README, "Result file"):
   ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
   ``split_markers`` (the flagged markers that grew the count, see :mod:`jaxskel.pipeline._split_refit`);
   ``left_out_labels``, ``left_out_reasons`` (markers the motion cannot place, left out of the
-  skeleton, and why: :func:`jaxskel.segment.left_out_markers`);
+  skeleton, and why: :func:`jaxskel.segment.left_out_markers`); ``still_spans`` (n, 2) the
+  frame ranges of still trials, which the joint stages leave out;
   attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / split), ``max_segments``,
   ``rigid_limit`` (metres), ``sigma``, ``white_noise`` (metres), ``split_from`` (the automatic count before it grew, 0 if it did not),
   ``rigid_count`` (the first larger count with every group rigid, passed over for a lone marker; 0 if none);
@@ -136,6 +137,7 @@ def save_result(
             put(g, "split_markers", np.asarray(seg.split_markers, dtype=str))
             put(g, "left_out_labels", np.asarray(list(seg.left_out), dtype=str))
             put(g, "left_out_reasons", np.asarray(list(seg.left_out.values()), dtype=str))
+            put(g, "still_spans", np.asarray(seg.still_spans, dtype=np.int64).reshape(-1, 2))
 
             g = f.create_group("topology")
             put(g, "joint_cost", topo.pair_costs.cost)

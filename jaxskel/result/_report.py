@@ -45,6 +45,11 @@ def summary_text(result: Any) -> str:
     width = max(map(len, result.segment_names), default=0)
     for name, group in zip(result.segment_names, result.segmentation.groups):
         lines.append(f"  {name:>{width}}: {', '.join(group)}")
+    if seg.still_spans:
+        rate = result.trial.rate
+        spans = ", ".join(f"{a / rate:.2f}-{b / rate:.2f} s" for a, b in seg.still_spans)
+        lines.append(f"still trials ({spans}): no two segments move there, so they place markers on segments and "
+                     "enter the skeleton and the motion, but not the joints")
     if seg.left_out:
         lines.append(f"left out of the skeleton ({len(seg.left_out)} marker(s) the motion cannot place):")
         lines += [f"  {label}: {why}" for label, why in seg.left_out.items()]

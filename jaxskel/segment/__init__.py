@@ -5,7 +5,7 @@ segment names.
 
 from __future__ import annotations
 
-from ._left_out import LeftOut, left_out_markers
+from ._left_out import LeftOut, left_out_markers, still_trials
 from ._names import names_from_markers
 from ._spectral import Segmentation, combine_trials, distance_std, segment_markers
 
@@ -14,4 +14,7 @@ from ._spectral import Segmentation, combine_trials, distance_std, segment_marke
 from ._names import safe_name, segment_names
 from ._spectral import count_singletons, white_noise
 
-__all__ = ["LeftOut", "Segmentation", "left_out_markers", "combine_trials", "distance_std", "names_from_markers", "segment_markers"]
+__all__ = [
+    "LeftOut", "Segmentation", "combine_trials", "distance_std", "left_out_markers", "names_from_markers",
+    "segment_markers", "still_trials",
+]

@@ -36,12 +36,13 @@ matrix product over frames for all markers at once.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 
 from ..io import Trial
 
-__all__ = ["LeftOut", "left_out_markers", "rigidity_limit"]
+__all__ = ["LeftOut", "left_out_markers", "rigidity_limit", "still_trials"]
 
 #: At most this many frames (evenly spaced over the recording) are read: the tests are
 #: about minutes-long stillness or motion, not single frames.
@@ -79,6 +80,82 @@ def rigidity_limit(noise_floor: float, *, sigma_min: float, sigma_factor: float,
     return float(rigid_ratio) * max(float(sigma_min), float(sigma_factor) * float(noise_floor))
 
 
+class _RelativeMotion:
+    """Pairwise distances of a recording's markers and their std over chosen frames."""
+
+    def __init__(self, x: np.ndarray, seen: np.ndarray, white_noise: float) -> None:
+        t, m = seen.shape
+        x0 = np.where(seen[..., None], x, 0.0)
+        self.both = seen[:, :, None] & seen[:, None, :]  # (T, M, M)
+        self.d = np.linalg.norm(x0[:, :, None, :] - x0[:, None, :, :], axis=-1) * self.both
+        self.w = self.both.reshape(t, m * m).astype(float)
+        self.dd = self.d.reshape(t, m * m)
+        self.m = m
+        self.noise2 = 2.0 * float(white_noise) ** 2
+        self.off_diag = ~np.eye(m, dtype=bool)
+
+    def std(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, n)``: for each row of ``weights`` (G, T), the (M, M) distance std over those
+        frames (white noise taken out) and the number of frames each pair is seen in."""
+        g, m = weights.shape[0], self.m
+        s0 = (weights @ self.w).reshape(g, m, m)
+        s1 = (weights @ self.dd).reshape(g, m, m)
+        s2 = (weights @ (self.dd * self.dd)).reshape(g, m, m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = s1 / s0
+            var = np.maximum(s2 / s0 - mean * mean - self.noise2, 0.0)
+        return np.sqrt(var), s0
+
+    def limit(self, *, sigma_min: float, sigma_factor: float, rigid_ratio: float) -> float | None:
+        """The segmentation's rigidity limit on this recording (``None``: no pair measured)."""
+        a, n = self.std(np.ones((1, self.w.shape[0])))
+        a = np.where((n[0] >= MIN_SHARED_FRAMES) & self.off_diag, a[0], np.inf)
+        nearest = a.min(axis=1)
+        nearest = nearest[np.isfinite(nearest)]
+        if not nearest.size:
+            return None
+        return rigidity_limit(float(np.median(nearest)), sigma_min=sigma_min, sigma_factor=sigma_factor,
+                              rigid_ratio=rigid_ratio)
+
+    def moving_pairs(self, weights: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+        """For each row of ``weights``: how many marker pairs move apart beyond ``limit``
+        over those frames, and how many pairs are measured there."""
+        a, n = self.std(weights)
+        pairs = (n >= MIN_SHARED_FRAMES) & self.off_diag[None]
+        return (pairs & (a > limit)).sum(axis=(1, 2)), pairs.sum(axis=(1, 2))
+
+
+def still_trials(
+    trial: Trial,
+    bounds: tuple[tuple[int, int], ...],
+    *,
+    white_noise: float,
+    sigma_min: float = 0.003,
+    sigma_factor: float = 2.0,
+    rigid_ratio: float = 3.0,
+) -> tuple[int, ...]:
+    """The trials (``bounds``: frame ranges of trials fitted together) in which no two
+    segments move relative to each other: fewer than :data:`MOVING_PAIR_FRACTION` of the
+    marker pairs move apart beyond the rigidity limit. Such a trial (a static pose) places
+    markers on segments but says nothing about joints. Empty when every trial moves, or
+    none does."""
+    if len(bounds) < 2:
+        return ()
+    frames = _frames(trial)
+    x = np.asarray(trial.positions, dtype=float)[frames]
+    seen = np.isfinite(x).all(axis=-1)
+    if x.shape[1] < 3:
+        return ()
+    motion = _RelativeMotion(x, seen, white_noise)
+    limit = motion.limit(sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
+    if limit is None:
+        return ()
+    weights = np.stack([((frames >= a) & (frames < b)).astype(float) for a, b in bounds])
+    moving, n = motion.moving_pairs(weights, limit)
+    still = tuple(i for i in range(len(bounds)) if moving[i] < MOVING_PAIR_FRACTION * max(int(n[i]), 1))
+    return still if len(still) < len(bounds) else ()
+
+
 def _frames(trial: Trial) -> np.ndarray:
     n = trial.n_frames
     if n <= MAX_FRAMES:
@@ -108,39 +185,13 @@ def left_out_markers(
     m = x.shape[1]
     if m < 3:
         return LeftOut({})
-    x0 = np.where(seen[..., None], x, 0.0)
-    d = np.linalg.norm(x0[:, :, None, :] - x0[:, None, :, :], axis=-1)  # (T, M, M)
-    both = (seen[:, :, None] & seen[:, None, :]).astype(float)
-    d = d * both
-    flat_w = both.reshape(len(frames), m * m)
-    flat_d = d.reshape(len(frames), m * m)
-    v = seen.T.astype(float)  # (M, T): moments over each marker's own frames
-    s0 = (v @ flat_w).reshape(m, m, m)
-    s1 = (v @ flat_d).reshape(m, m, m)
-    s2 = (v @ (flat_d * flat_d)).reshape(m, m, m)
-    noise2 = 2.0 * float(white_noise) ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = s1 / s0
-        var = np.maximum(s2 / s0 - mean * mean - noise2, 0.0)
-    a_within = np.sqrt(var)  # a_within[i, k, l]: std of d_kl over marker i's frames
-    counted = s0 >= MIN_SHARED_FRAMES
-    off_diag = ~np.eye(m, dtype=bool)
-    # The recording's own A (over all frames) for the noise floor and the limit.
-    w_all = flat_w.sum(0).reshape(m, m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_all = flat_d.sum(0).reshape(m, m) / w_all
-        a_all = np.sqrt(np.maximum((flat_d * flat_d).sum(0).reshape(m, m) / w_all - mean_all**2 - noise2, 0.0))
-    a_all = np.where((w_all >= MIN_SHARED_FRAMES) & off_diag, a_all, np.inf)
-    nearest_a = a_all.min(axis=1)
-    nearest_a = nearest_a[np.isfinite(nearest_a)]
-    if not nearest_a.size:
+    motion = _RelativeMotion(x, seen, white_noise)
+    limit = motion.limit(sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
+    if limit is None:
         return LeftOut({})
-    limit = rigidity_limit(float(np.median(nearest_a)), sigma_min=sigma_min, sigma_factor=sigma_factor,
-                           rigid_ratio=rigid_ratio)
-
-    pairs = counted & off_diag[None]
-    n_pairs = pairs.sum(axis=(1, 2))
-    moving_pairs = (pairs & (a_within > limit)).sum(axis=(1, 2))
+    moving_pairs, n_pairs = motion.moving_pairs(seen.T.astype(float), limit)  # over each marker's frames
+    d, both = motion.d, motion.both
+    off_diag = ~np.eye(m, dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
         evidence = np.where(n_pairs > 0, moving_pairs / np.maximum(n_pairs, 1), 0.0)
     has_evidence = evidence >= MOVING_PAIR_FRACTION
@@ -151,6 +202,12 @@ def left_out_markers(
     for i in np.flatnonzero(~has_evidence):
         t = times[seen[:, i]]
         span = f"{t.min():.2f}-{t.max():.2f} s" if t.size else "no frame"
+        if n_pairs[i] == 0:
+            reasons[trial.labels[i]] = (
+                f"seen in too few frames together with other markers ({span}) to measure its distances to them; "
+                "fit it with a trial in which it is seen longer"
+            )
+            continue
         reasons[trial.labels[i]] = (
             f"seen only while no two segments moved relative to each other ({span}; "
             f"{moving_pairs[i]} of {n_pairs[i]} marker pairs moved apart beyond the rigidity limit "
@@ -168,15 +225,12 @@ def left_out_markers(
     if not still.any() or not moving.any():
         return LeftOut(reasons)
     d_p90 = np.full((m, m), np.inf)
-    dd = np.where(both.astype(bool), d, np.nan)
+    dd = np.where(both, d, np.nan)
     shared = both.sum(0) >= MIN_SHARED_FRAMES
-    with np.errstate(invalid="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            p90 = np.nanpercentile(dd, 90, axis=0)
-            med = np.nanmedian(dd, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # pairs never seen together: all-NaN
+        p90 = np.nanpercentile(dd, 90, axis=0)
+        med = np.nanmedian(dd, axis=0)
     d_p90[shared] = p90[shared]
     med = np.where(shared & off_diag, med, np.inf)
     spacing = float(np.median(med.min(axis=1)[np.isfinite(med.min(axis=1))]))

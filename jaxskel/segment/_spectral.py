@@ -237,6 +237,10 @@ class Segmentation:
     left_out
         Markers left out of the grouping because the motion cannot place them, label ->
         reason (:func:`jaxskel.segment.left_out_markers`); they are not in :attr:`labels`.
+    still_spans
+        Frame ranges ``(start, stop)`` of trials fitted together in which no two segments
+        move relative to each other (:func:`jaxskel.segment.still_trials`: a static pose);
+        the joint stages leave them out, the skeleton and the motion use them.
     """
 
     labels: tuple[str, ...]
@@ -258,6 +262,7 @@ class Segmentation:
     rigid_count: int = 0
     white_noise: float = 0.0
     left_out: dict[str, str] = dataclasses.field(default_factory=dict)
+    still_spans: tuple[tuple[int, int], ...] = ()
 
     @property
     def groups(self) -> list[tuple[str, ...]]:

@@ -39,10 +39,10 @@ markers of the joint's segments sit on the axis on either side of the centre (th
 and lateral epicondyles of a knee, the two styloids of a wrist), the centre goes midway
 between them along the axis, which is where a person puts it. With ``t = a . (m - p)``
 the coordinate of marker m along the axis from the joint p and ``r`` its distance from
-the axis, a pair straddles the joint when ``t_1 > 0 > t_2`` and both ``r`` are at most
-:data:`STRADDLE_RATIO` times their separation ``t_1 - t_2`` (both lie within ~17 degrees
-of the axis as seen from their midpoint); of several such pairs the one closest to the
-axis (smallest ``max(r) / (t_1 - t_2)``) is taken, and the shift is ``(t_1 + t_2) / 2``.
+the axis, two markers nearer this joint than any other straddle it when both ``r`` are at
+most :data:`STRADDLE_RATIO` times their separation ``|t_1 - t_2|`` (their line within
+~30-50 degrees of the axis); of several pairs, the one with the smallest ratio; the shift
+is ``(t_1 + t_2) / 2``.
 Such a joint is then a fixed neighbour (``s_k`` known) in the limb-plane equations of the
 others.
 """
@@ -88,10 +88,12 @@ MAX_BONE_COSINE = 0.5
 MIN_ROTATION_RMS = float(np.deg2rad(5.0))
 
 #: Two markers straddle a hinge when each lies at most this many times their separation
-#: along the axis from it (module docstring): 0.3 admits epicondyle markers 1-3 cm off the
-#: axis of a 9-12 cm wide knee and turns away the markers of a limb's surface, which lie
-#: across the axis, not along it.
-STRADDLE_RATIO = 0.3
+#: along the axis from it (module docstring): 0.6 admits epicondyle markers 1-3 cm off the
+#: axis of a 9-12 cm wide knee, and malleolus markers, whose line runs up to ~30 degrees
+#: from the ankle's axis (the lateral malleolus sits lower and further back), and turns
+#: away two markers on one side of a limb (a small separation along the axis) and the
+#: markers of a limb's surface, which lie across the axis, not along it.
+STRADDLE_RATIO = 0.6
 
 #: Ridge on the shifts (m^2 per m^2 of equation residual); see the module docstring.
 _RIDGE = 1e-6
@@ -184,24 +186,31 @@ def straddling_pair(
     """The pair of markers that straddles a hinge (module docstring), or ``None``.
 
     ``along[i]``: marker i's coordinate along the axis from the current centre (metres);
-    ``off[i]``: its distance from the axis. Returns ``(i, k, shift)`` with ``along[i] > 0 >
+    ``off[i]``: its distance from the axis. The candidates are markers nearer this joint
+    than any other (the caller's choice). A pair straddles the joint when both lie within
+    :data:`STRADDLE_RATIO` times their separation of the axis; of several, the one closest
+    to the axis relative to its separation. Returns ``(i, k, shift)`` with ``along[i] >
     along[k]`` and ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
-    the centre midway between them.
+    the centre midway between them (the current centre, which the motion leaves free along
+    the axis, need not lie between them).
     """
     t = np.asarray(along, dtype=float)
     r = np.asarray(off, dtype=float)
-    ok = np.isfinite(t) & np.isfinite(r)
-    pos = np.flatnonzero(ok & (t > 0))
-    neg = np.flatnonzero(ok & (t < 0))
-    if not pos.size or not neg.size:
+    ok = np.flatnonzero(np.isfinite(t) & np.isfinite(r))
+    if ok.size < 2:
         return None
-    sep = t[pos][:, None] - t[neg][None, :]
-    worst = np.maximum(r[pos][:, None], r[neg][None, :]) / sep
-    a, b = np.unravel_index(np.argmin(worst), worst.shape)
+    t, r = t[ok], r[ok]
+    sep = np.abs(t[:, None] - t[None, :])
+    worst = np.maximum(r[:, None], r[None, :]) / np.where(sep > 0, sep, np.nan)
+    np.fill_diagonal(worst, np.nan)
+    if not np.isfinite(worst).any():
+        return None
+    a, b = np.unravel_index(np.nanargmin(worst), worst.shape)
     if worst[a, b] > STRADDLE_RATIO:
         return None
-    i, k = int(pos[a]), int(neg[b])
-    return i, k, float(0.5 * (t[i] + t[k]))
+    if t[a] < t[b]:
+        a, b = b, a
+    return int(ok[a]), int(ok[b]), float(0.5 * (t[a] + t[b]))
 
 
 def axial_coordinates(

@@ -296,6 +296,8 @@ def _place_hinges(
     covered: np.ndarray,
     js: np.ndarray,
     jm: np.ndarray,
+    landmark_local: np.ndarray,
+    landmark_joint: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Move sliding joints along their axes (:mod:`jaxskel.skeleton._hinge_centres`), in place.
 
@@ -305,8 +307,11 @@ def _place_hinges(
     along the axis seen in that frame (the parent's pose, else the child's, else the
     nearest frame's). Returns the shifts (J,), the parent-frame axes (J, 3; NaN for
     joints not moved) and each joint's weight as a neighbour (J,; inverse variance of
-    its centre, for :func:`_replace_hinges`) and the pair of (used) markers that straddles
-    each joint (J, 2; -1 where none does: the limb plane placed it). A joint moves only if
+    its centre, for :func:`_replace_hinges`) and the pair of markers that straddles
+    each joint (J, 2: used-marker indices, ``n_used + k`` for landmark k of
+    ``landmark_local`` (S, L, 3, each landmark in each segment's Procrustes frame, NaN
+    where unknown; ``landmark_joint`` (L,) the joint each is nearest); -1 where none does:
+    the limb plane placed it). A joint moves only if
     it turns as a hinge (``MAX_OFF_AXIS``) and both segments were posed by Procrustes in at
     least 3 common frames.
     """
@@ -339,14 +344,32 @@ def _place_hinges(
     placed = np.zeros(n_joints)
     for j in np.flatnonzero(movable):
         ids, along, off = [], [], []
+        n_used = sum(len(m) for m in members)
         for side in (0, 1):
             s = int(edges[j, side])
             cloud = ref[s, : len(members[s])]
-            seen = covered[s, : len(members[s])] & np.isfinite(cloud).all(axis=1)
+            # the segment's markers nearer this joint than its other joints
+            others = [slot(s, k) for k in seg_joints[s] if k != j]
+            near = np.linalg.norm(cloud - ref[s, slot(s, j)], axis=-1)
+            if others:
+                near = near < np.min(np.linalg.norm(cloud[:, None] - ref[s, others][None], axis=-1), axis=1)
+            else:
+                near = np.ones(len(cloud), bool)
+            seen = covered[s, : len(members[s])] & np.isfinite(cloud).all(axis=1) & near
             t, r = axial_coordinates(cloud[seen], points[j, side], axes[j, side])
             ids += members[s][seen].tolist()
             along += t.tolist()
             off += r.tolist()
+        # a landmark nearer this joint than any other, once, from the parent's frame (else the child's)
+        for k in np.flatnonzero(landmark_joint == j):
+            for side in (0, 1):
+                here = landmark_local[int(edges[j, side]), k]
+                if np.isfinite(here).all():
+                    t, r = axial_coordinates(here[None], points[j, side], axes[j, side])
+                    ids.append(n_used + k)
+                    along.append(float(t[0]))
+                    off.append(float(r[0]))
+                    break
         found = straddling_pair(np.asarray(along), np.asarray(off))
         if found is not None:
             straddle[j] = ids[found[0]], ids[found[1]]
@@ -372,6 +395,50 @@ def _place_hinges(
         js[:, j] = np.where(jm[:, j, None], js[:, j] + shift[j] * world, js[:, j])
         axis_parent[j] = axes[j, 0]
     return shift, axis_parent, weights, straddle
+
+
+def _landmarks_local(
+    landmarks: Trial | None,
+    padded: np.ndarray,
+    real: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    usable: np.ndarray,
+    n_frames: int,
+    ref: np.ndarray,
+    edges: np.ndarray,
+    members: list[np.ndarray],
+    seg_joints: list[np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each landmark in each segment's Procrustes frame (S, L, 3: ``R x + t``, the median
+    over the fitted frames that show both; NaN where none does), and the joint each is
+    nearest to (L,; the median over frames of its distance to each joint centre, placed in
+    the world by the joint's parent; -1 where none is known)."""
+    n_seg = usable.shape[1]
+    if landmarks is None or landmarks.n_markers == 0:
+        return np.zeros((n_seg, 0, 3)), np.zeros(0, int)
+    if landmarks.n_frames != n_frames:
+        raise InputError(f"landmarks must have the trial's {n_frames} frames, got {landmarks.n_frames}")
+    x = np.asarray(landmarks.positions, dtype=float)[padded]  # (F, L, 3)
+    seen = np.isfinite(x).all(axis=-1) & real[:, None]
+    local = np.einsum("fsij,flj->fsli", rot, np.nan_to_num(x)) + trans[:, :, None, :]
+    ok = seen[:, None, :] & usable[:, :, None]  # (F, S, L)
+    n_joints = edges.shape[0]
+    distance = np.full((n_joints, x.shape[1]), np.inf)
+    for j in range(n_joints):
+        p = int(edges[j, 0])
+        point = ref[p, len(members[p]) + int(np.flatnonzero(seg_joints[p] == j)[0])]
+        world = np.einsum("fji,fj->fi", rot[:, p], point[None] - trans[:, p])  # R^T (q - t)
+        d = np.linalg.norm(x - world[:, None], axis=-1)
+        d = np.where(seen & usable[:, p, None], d, np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            distance[j] = np.nan_to_num(np.nanmedian(d, axis=0), nan=np.inf)
+    nearest = np.where(np.isfinite(distance).any(axis=0), np.argmin(distance, axis=0), -1) if n_joints else \
+        np.full(x.shape[1], -1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a landmark a segment never shares a frame with
+        return np.nanmedian(np.where(ok[..., None], local, np.nan), axis=0), nearest
 
 
 def _turns_as_hinge(
@@ -430,7 +497,9 @@ def _replace_hinges(
         j_th[edges[:, 0] == c] -= amount * axes[j, 1]
 
     shift = np.zeros(n_joints)
-    straddled = ok & (straddle[:, 0] >= 0)
+    n_used = useg.size
+    fixed = ok & (straddle.max(axis=1) >= n_used)  # placed by landmarks, which the refinement does not carry
+    straddled = ok & (straddle[:, 0] >= 0) & ~fixed
     for j in np.flatnonzero(straddled):
         # midway between the straddling markers, on the refined offsets: a parent's marker
         # from the joint, a child's from its origin (the joint itself)
@@ -440,8 +509,8 @@ def _replace_hinges(
         move(j, shift[j])
     points = np.zeros((n_joints, 2, 3))
     points[:, 0] = j_th
-    plane = hinge_shifts(edges, ok & ~straddled, points, axes, weights)
-    for j in np.flatnonzero(ok & ~straddled):
+    plane = hinge_shifts(edges, ok & ~straddled & ~fixed, points, axes, weights)
+    for j in np.flatnonzero(ok & ~straddled & ~fixed):
         move(j, plane[j])
     return shift + plane
 
@@ -611,6 +680,7 @@ def fit_rigid(
     labels: Sequence[str] | None = None,
     sliding_joints: Sequence[bool] | np.ndarray | None = None,
     joint_weight: float = JOINT_WEIGHT,
+    landmarks: Trial | None = None,
 ) -> Skeleton:
     """Fit a rigid skeleton to markers and joint centres (Kirk et al. 2005, §3.3).
 
@@ -655,6 +725,12 @@ def fit_rigid(
         Weight of an input joint centre relative to a marker in the refinement (1: like a
         marker; :func:`jaxskel.fit_skeleton` uses ``SOLVED_JOINT_WEIGHT`` = 0.1 for its own
         solved centres, see there).
+    landmarks
+        Markers on the same frames that are on no segment (the extra markers of a static
+        trial fitted with a dynamic one, :func:`jaxskel.segment.left_out_markers`): they take
+        no part in the fit, but two that straddle a sliding joint place it midway between
+        them (:func:`jaxskel.skeleton._hinge_centres.straddling_pair`), located in the
+        joint's segment frames from the frames that show them.
 
     Returns
     -------
@@ -746,7 +822,7 @@ def fit_rigid(
     first = np.argmax(weights.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref0 = pts[first, np.arange(n_seg)]
     refw0 = weights[first, np.arange(n_seg)]
-    ref, gpa_rot, _, gpa_rms = (np.array(a) for a in procrustes(pts, weights, ref0, refw0))
+    ref, gpa_rot, gpa_t, gpa_rms = (np.array(a) for a in procrustes(pts, weights, ref0, refw0))
     covered = weights.sum(axis=0) > 0  # (S, P)
     alignable = np.zeros(n_seg, bool)
     for s in range(n_seg):
@@ -755,8 +831,12 @@ def fit_rigid(
             sv = np.linalg.svd(cloud - cloud.mean(axis=0), compute_uv=False)
             alignable[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
 
+    landmark_local, landmark_joint = _landmarks_local(
+        landmarks, padded, real, gpa_rot, gpa_t, usable, n_frames, ref, edges, members, seg_joints
+    )
     hinge_shift, hinge_axis, weights_of_joints, straddle = _place_hinges(
-        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, covered, js, jm
+        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, covered, js, jm,
+        landmark_local, landmark_joint,
     )
 
     # Local frames: world-aligned at a common frame (or the segment's nearest usable one).
@@ -845,7 +925,7 @@ def fit_rigid(
                 trial, marker_segment, edges, joint_positions, root=root, refine=refine, max_steps=max_steps,
                 max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames, prior_weight=prior_weight,
                 nonrigid_factor=nonrigid_factor, labels=labels, joint_weight=joint_weight,
-                sliding_joints=np.asarray(sliding_joints, dtype=bool) & ~rejected,
+                sliding_joints=np.asarray(sliding_joints, dtype=bool) & ~rejected, landmarks=landmarks,
             )
             unmoved = sorted(set(again.diagnostics.get("hinges_unmoved", [])) | set(np.flatnonzero(rejected).tolist()))
             return dataclasses.replace(again, diagnostics={**again.diagnostics, "hinges_unmoved": unmoved})
@@ -930,6 +1010,11 @@ def fit_rigid(
             ConvergenceWarning,
             stacklevel=2,
         )
+    landmark_labels = tuple(landmarks.labels) if landmarks is not None else ()
+
+    def names_of(i: int) -> str:
+        return labels[used[i]] if i < n_used else landmark_labels[i - n_used]
+
     diagnostics = {
         "sweeps": n_sweeps,
         "result": RESULT_SUCCESSFUL if converged else RESULT_MAX_STEPS,
@@ -946,7 +1031,7 @@ def fit_rigid(
         "hinge_shift": [float(v) for v in hinge_shift],
         "hinge_placement": [
             "" if not np.isfinite(hinge_axis_local[j, 0]) and straddle[j, 0] < 0
-            else f"between {labels[used[straddle[j, 0]]]} and {labels[used[straddle[j, 1]]]}" if straddle[j, 0] >= 0
+            else f"between {names_of(straddle[j, 0])} and {names_of(straddle[j, 1])}" if straddle[j, 0] >= 0
             else "limb plane" for j in range(n_joints)
         ],
         "hinge_axis": hinge_axis_rest.tolist(),
