@@ -152,13 +152,18 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+#: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
+FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc"}
+
+
 def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrite: bool) -> None:
-    """Before any work: no output names an input (even with ``--overwrite``), two outputs
-    are two files, none is a folder, an existing one is replaced only with ``--overwrite``,
-    and each one's folder, where it exists, is writable."""
+    """Before any work, for each output flag of :data:`FIT_OUTPUTS` given: it names no input
+    (even with ``--overwrite``) and no other output, it is a file name (not a folder) of a
+    type its writer knows, an existing file is replaced only with ``--overwrite``, and the
+    folder it goes into (or the nearest existing one above) is writable."""
     import jaxskel
 
-    from .io import refuse_input
+    from .io import check_output, refuse_input
 
     named: dict[str, str] = {}
     for flag, path in outputs.items():
@@ -169,13 +174,82 @@ def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrit
         if key in named:
             raise jaxskel.InputError(f"{named[key]} and {flag} both name {path}; give each output its own file")
         named[key] = flag
-        if path.is_dir():
-            raise jaxskel.InputError(f"{flag} {path} is a folder; give a file name inside it")
+        check_output(path, FIT_OUTPUTS[flag], flag)
         if path.exists() and not overwrite:
             raise jaxskel.InputError(f"{path} exists; pass --overwrite to replace it")
-        folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path("."))
-        if not os.access(folder, os.W_OK | os.X_OK):
-            raise jaxskel.InputError(f"cannot write {flag} {path}: the folder {folder} is not writable")
+
+
+def _check_batch_outputs(args: argparse.Namespace, summary: str = "summary.csv") -> None:
+    """Before any work, the outputs of ``jaxskel fit-batch``: ``-o`` is (or will be) a folder
+    that does not hold the input folder and can be written; no result file, nor the summary
+    table, nor ``--plot-bones`` names an input recording, a folder or another output; and
+    the plot has an image type matplotlib writes."""
+    import jaxskel
+
+    from .io import check_output, check_writable
+    from .pipeline._batch import _resolve_items
+
+    outdir, directory = args.outdir, args.directory
+    hint = outdir.with_suffix("") if outdir.suffix else outdir.parent / f"{outdir.name}-results"
+    folder_text = "fit-batch writes a folder (one result file per recording, and summary.csv)"
+    if outdir.exists() and not outdir.is_dir():
+        raise jaxskel.InputError(f"-o {outdir} is a file, but {folder_text}: give a folder name, e.g. -o {hint}")
+    if not outdir.exists() and outdir.suffix.lower() in (".h5", ".hdf5", ".csv"):
+        raise jaxskel.InputError(
+            f"-o {outdir} is a file name, but {folder_text}: give a folder name, e.g. -o {hint}"
+        )
+    if outdir.resolve() == directory.resolve() or outdir.resolve() in directory.resolve().parents:
+        same = "is" if outdir.resolve() == directory.resolve() else "holds"
+        raise jaxskel.InputError(
+            f"-o {outdir} {same} the input folder {directory}, and fit-batch leaves out every file under its "
+            f"output folder when it looks for recordings: give another output folder, e.g. -o {directory / 'results'}"
+        )
+    check_writable(outdir, "-o", folder=True)
+    items = _resolve_items(directory, outdir, None, None)
+    inputs = {Path(v).resolve(): Path(v) for it in items for v in it.inputs}
+    inodes = {(st.st_dev, st.st_ino): p for p, st in ((p, p.stat()) for p in inputs.values())}
+
+    def input_named(path: Path) -> Path | None:
+        if path.resolve() in inputs:
+            return inputs[path.resolve()]
+        if path.exists():
+            st = path.stat()
+            return inodes.get((st.st_dev, st.st_ino))
+        return None
+
+    table = outdir / summary
+    outputs = {table.resolve(): "the summary table"}
+    for it in items:
+        src = input_named(it.output)
+        if src is not None:
+            raise jaxskel.InputError(
+                f"the result file of {it.name}, {it.output}, is the input recording {src}; jaxskel never writes "
+                "over an input: give another output folder"
+            )
+        if it.output.is_dir():
+            raise jaxskel.InputError(
+                f"the result file of {it.name}, {it.output}, is a folder; move it away or give another output folder"
+            )
+        outputs[it.output.resolve()] = f"the result file of {it.name}"
+        if it.output.parent != outdir:
+            check_writable(it.output, f"the result file of {it.name},")
+    if table.is_dir():
+        raise jaxskel.InputError(f"the summary table {table} is a folder; move it away or give another output folder")
+    if args.plot_bones is not None:
+        plot = args.plot_bones
+        src = input_named(plot)
+        if src is not None:
+            raise jaxskel.InputError(
+                f"--plot-bones {plot} is the input recording {src}; jaxskel never writes over an input, even "
+                "with overwrite: choose another name"
+            )
+        if plot.resolve() in outputs:
+            raise jaxskel.InputError(
+                f"--plot-bones {plot} is {outputs[plot.resolve()]}; give the plot its own file"
+            )
+        check_output(plot, "image", "--plot-bones")
+        if plot.exists() and not args.overwrite:
+            raise jaxskel.InputError(f"{plot} exists; pass --overwrite to replace it")
 
 
 def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
@@ -240,11 +314,9 @@ def _fit_batch(args: argparse.Namespace) -> int:
     if not args.directory.is_dir():
         raise jaxskel.InputError(f"{args.directory}: not a directory; fit-batch takes a folder of recordings")
     bones = dict(parse_bone_spec(text) for text in args.bone)
-    if args.plot_bones is not None:
-        if len(bones) < 2:
-            raise jaxskel.InputError("--plot-bones needs two --bone NAME=A,S,B options (x and y)")
-        if args.plot_bones.exists() and not args.overwrite:
-            raise jaxskel.InputError(f"{args.plot_bones} exists; pass --overwrite to replace it")
+    if args.plot_bones is not None and len(bones) < 2:
+        raise jaxskel.InputError("--plot-bones needs two --bone NAME=A,S,B options (x and y)")
+    _check_batch_outputs(args)
     if args.scheduler and args.workers:
         raise jaxskel.InputError("give --scheduler or --workers, not both")
     cluster = None
@@ -342,8 +414,36 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
-    """Warnings as a command line tool says them: one labelled message, no source line."""
-    print(f"jaxskel: warning ({category.__name__}): {message}", file=sys.stderr if file is None else file)
+    """Warnings as a command line tool says them: one labelled message on a line of its own,
+    no source line; a trial's warning of ``fit-batch`` names the trial
+    (``jaxskel: warning (Category) [trial]: message``, :mod:`jaxskel.pipeline._trial_warnings`)."""
+    trial = getattr(message, "trial", None)
+    head = f"jaxskel: warning ({category.__name__})" + (f" [{trial}]" if trial is not None else "")
+    text = getattr(message, "text", message) if trial is not None else message
+    _say(f"{head}: {text}", sys.stderr if file is None else file)
+
+
+def _say(text: str, stream: Any) -> None:
+    """Write ``text`` as lines of their own while a progress bar may be drawn on ``stream``.
+
+    A tqdm bar leaves the cursor at the end of its line; a message written there would
+    continue the bar's line. Active bars are cleared first and drawn again below the
+    message (tqdm's external write mode); where the stream is not a terminal (a log
+    file, a pipe), clearing only writes a carriage return, so the message also starts
+    with a newline.
+    """
+    tqdm = sys.modules.get("tqdm")  # a bar exists only where tqdm was imported
+    bars = [] if tqdm is None else [b for b in list(getattr(tqdm.tqdm, "_instances", ())) if not b.disable]
+    if not bars:
+        print(text, file=stream)
+        return
+    try:
+        tty = stream.isatty()
+    except (AttributeError, ValueError):
+        tty = False
+    with tqdm.tqdm.external_write_mode(file=stream):
+        stream.write(("" if tty else "\n") + text + "\n")
+        stream.flush()
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -364,6 +464,9 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("jaxskel: interrupted; no partial output was left behind", file=sys.stderr)
         return 130
+    except OSError as exc:  # the system refused a write the preflight allowed (disk full, permissions changed)
+        print(f"jaxskel: error: {exc}; no partial output was left behind", file=sys.stderr)
+        return 1
     return 1
 
 

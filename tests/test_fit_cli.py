@@ -417,3 +417,31 @@ def test_no_output_is_ever_written_over_an_input(linkage_trial, tmp_path, capsys
     with pytest.raises(jaxskel.InputError, match="is the input recording"):
         result.save(h5, overwrite=True)
     assert jaxskel.load(h5).n_frames == trial.n_frames
+
+
+def test_a_write_the_system_refuses_after_the_fit_is_one_line_and_leaves_the_old_file(
+    fitted, linkage_trial, tmp_path, monkeypatch, capsys
+):
+    """Issue 45, item 2: the preflight cannot foresee a disk that fills during the fit. The
+    save then fails as one line with status 1 (it was a traceback), the old result stays
+    byte for byte, and no temporary file is left."""
+    import errno
+    import os
+
+    trial, _ = linkage_trial
+    src = tmp_path / "link.trc"
+    trial.save(src)
+    out = tmp_path / "r.h5"
+    out.write_bytes(b"the old result")
+    monkeypatch.setattr(jaxskel, "fit_skeleton", lambda *a, **k: fitted)  # the fit itself is tested above
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    assert main(["fit", str(src), "-o", str(out), "--overwrite", "--quiet"]) == 1
+    assert capsys.readouterr().err == (
+        "jaxskel: error: [Errno 28] No space left on device; no partial output was left behind\n"
+    )
+    assert out.read_bytes() == b"the old result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.trc", "r.h5"]

@@ -171,7 +171,7 @@ def _load(path: Path) -> Any:
 
 def _save(path: Path, data: bytes | bytearray) -> None:
     """Write atomically (jaxskel's :func:`~jaxskel.io._atomic.atomic_output`: a hidden
-    temporary ``.<name>.<random>.tmp`` renamed into place), then prune the folder."""
+    temporary ``.<name>.jaxskel-<pid>-<host>-<random>.tmp`` renamed into place), then prune the folder."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(path, overwrite=True, suffix="") as tmp:

@@ -5,21 +5,144 @@ in the destination directory and renames it onto the destination only once
 the write has finished. A rename within one directory is atomic on POSIX and
 Windows, so the destination is either the old file (or absent) or the complete
 new one, never a partial file, even if the process dies mid-write.
+
+A process killed mid-write (``kill -9``, out of memory, power loss) cannot remove
+its temporary file. Temporary files are therefore named after their owner,
+``.<name>.jaxskel-<pid>-<origin>-<random>.tmp<suffix>`` (``origin``: 8 hex digits
+of the host name and PID namespace, so that a process of another machine sharing
+the folder is never taken for a dead local one), and the next save of the same
+destination removes those whose process is gone, with a
+:class:`StaleTempFileWarning` naming them. A temporary file of a live process, of
+another machine, or of an older jaxskel (named ``.<name>.<12 hex>.tmp<suffix>``,
+without its owner: reported, not removed) is never touched.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
+import re
+import socket
 import uuid
+import warnings
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from .._errors import InputError
 
-__all__ = ["atomic_output"]
+__all__ = ["StaleTempFileWarning", "atomic_output", "stale_temp_files", "temp_path"]
+
+
+class StaleTempFileWarning(UserWarning):
+    """Temporary files of an interrupted save were found next to a destination (and
+    removed where their process is gone)."""
+
+
+def _origin() -> str:
+    """8 hex digits naming this machine and PID namespace (a container has its own)."""
+    try:
+        namespace = os.readlink("/proc/self/ns/pid")
+    except OSError:
+        namespace = ""
+    return hashlib.sha1(f"{socket.gethostname()}|{namespace}".encode()).hexdigest()[:8]
+
+
+_ORIGIN = _origin()
+_TEMP = r"\.jaxskel-(?P<pid>[0-9]+)-(?P<origin>[0-9a-f]{8})-[0-9a-f]{8}\.tmp"
+_LEGACY = r"\.[0-9a-f]{12}\.tmp"
+
+
+def temp_path(target: Path, suffix: str | None = None) -> Path:
+    """A fresh temporary sibling of ``target`` owned by this process (module docstring)."""
+    tmp_suffix = target.suffix if suffix is None else suffix
+    tag = f"jaxskel-{os.getpid()}-{_ORIGIN}-{uuid.uuid4().hex[:8]}"
+    return target.with_name(f".{target.name}.{tag}.tmp{tmp_suffix}")
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` of this machine runs (in doubt: yes)."""
+    if pid == os.getpid():
+        return True
+    if os.name == "nt":  # os.kill(pid, 0) would send CTRL_C_EVENT there: never remove
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: it runs, as another user
+        return True
+    return True
+
+
+def stale_temp_files(target: str | os.PathLike[str]) -> tuple[list[Path], list[Path]]:
+    """Temporary files of earlier saves of ``target`` in its folder: ``(dead, legacy)``.
+
+    ``dead``: those of a process of this machine that no longer runs (safe to remove);
+    ``legacy``: those of an older jaxskel, whose owner is unknown. Temporary files of
+    live processes and of other machines are in neither list.
+    """
+    target = Path(target)
+    pattern = re.compile(re.escape(f".{target.name}") + f"(?:{_TEMP}|{_LEGACY})" + ".*")
+    dead: list[Path] = []
+    legacy: list[Path] = []
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return dead, legacy
+    for entry in entries:
+        match = pattern.fullmatch(entry.name)
+        if match is None:
+            continue
+        if match["pid"] is None:
+            legacy.append(Path(entry.path))
+        elif match["origin"] == _ORIGIN and not _alive(int(match["pid"])):
+            dead.append(Path(entry.path))
+    return sorted(dead), sorted(legacy)
+
+
+def _remove_stale(target: Path) -> None:
+    """Remove the temporary files of ``target`` that dead processes left (and those this
+    process could not remove before); warn about them and about temporary files of an
+    older jaxskel (left in place)."""
+    dead, legacy = stale_temp_files(target)
+    mine = f".{target.name}.jaxskel-{os.getpid()}-"
+    dead += [p for p in list(_ABANDONED) if p.parent == target.parent and p.name.startswith(mine)]
+    removed, kept = [], []
+    for path in dead:
+        _ABANDONED.discard(path)
+        try:
+            path.unlink()
+        except FileNotFoundError:  # another process cleaned it meanwhile
+            continue
+        except OSError as exc:
+            kept.append(f"{path.name} ({exc.strerror or exc})")
+            continue
+        removed.append(path)
+    if removed:
+        warnings.warn(
+            f"removed {len(removed)} temporary file(s) of an earlier, interrupted save of {target.name} in "
+            f"{target.parent}: {', '.join(p.name for p in removed)}",
+            StaleTempFileWarning,
+            stacklevel=4,
+        )
+    if kept:
+        warnings.warn(
+            f"cannot remove {len(kept)} temporary file(s) left in {target.parent} by an interrupted save of "
+            f"{target.name}: {', '.join(kept)}; delete them by hand",
+            StaleTempFileWarning,
+            stacklevel=4,
+        )
+    if legacy:
+        warnings.warn(
+            f"{target.parent} holds {len(legacy)} temporary file(s) of an interrupted save of {target.name} "
+            f"whose owner jaxskel cannot tell: {', '.join(p.name for p in legacy)}; delete them if no "
+            "program is writing there",
+            StaleTempFileWarning,
+            stacklevel=4,
+        )
 
 
 @contextlib.contextmanager
@@ -33,7 +156,8 @@ def atomic_output(
 
     On a normal exit the temporary file is flushed to disk and moved onto
     ``path``; if the body raises, the temporary file is removed and ``path``
-    is left exactly as it was.
+    is left exactly as it was. Before the body runs, temporary files of earlier
+    saves of ``path`` whose process has died are removed (module docstring).
 
     Parameters
     ----------
@@ -70,10 +194,10 @@ def atomic_output(
         raise InputError(
             f"{target} already exists; pass overwrite=True to replace it or choose another name"
         )
-    # A hidden, unique sibling: same directory (so the final rename is atomic)
-    # and not pre-created, so writers create it with the user's default mode.
-    tmp_suffix = target.suffix if suffix is None else suffix
-    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp{tmp_suffix}")
+    _remove_stale(target)
+    # A hidden sibling named after this process: same directory (so the final rename is
+    # atomic) and not pre-created, so writers create it with the user's default mode.
+    tmp = temp_path(target, suffix)
     try:
         yield tmp
         if not tmp.is_file():
@@ -84,7 +208,26 @@ def atomic_output(
         else:
             _publish_exclusive(tmp, target)
     finally:
+        _discard(tmp)
+
+
+#: This process's temporary files it could not remove (retried by the next save into
+#: their folder: the process is alive, so the stale-file sweep would leave them).
+_ABANDONED: set[Path] = set()
+
+
+def _discard(tmp: Path) -> None:
+    """Remove ``tmp``; where that fails, warn (the save itself stands) and retry later."""
+    try:
         tmp.unlink(missing_ok=True)
+    except OSError as exc:
+        _ABANDONED.add(tmp)
+        warnings.warn(
+            f"cannot remove the temporary file {tmp} ({exc.strerror or exc}); the next save into its folder "
+            "tries again",
+            StaleTempFileWarning,
+            stacklevel=4,
+        )
 
 
 def _fsync(path: Path) -> None:

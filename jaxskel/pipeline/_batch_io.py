@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import InputError
-from ..io import atomic_output
+from ..io import atomic_output, check_output, image_format
 from ..segment import names_from_markers
 
 __all__ = [
@@ -348,11 +348,14 @@ def plot_bone_lengths(
     group
         Column whose values get one colour/symbol each (default the subject).
     ax, path
-        Draw into ``ax``; write the figure to ``path`` (atomic, PNG/PDF by suffix).
+        Draw into ``ax``; write the figure to ``path`` (atomic; its suffix, one of the
+        image types matplotlib writes, picks the format; checked before drawing).
 
     Returns the axes.
     """
     import matplotlib.pyplot as plt
+
+    fmt = None if path is None else image_format(check_output(path, "image"))
 
     if hasattr(table, "table"):
         rows = table.table()
@@ -393,5 +396,5 @@ def plot_bone_lengths(
         fig = ax.figure
         fig.tight_layout()
         with atomic_output(path, overwrite) as tmp:
-            fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png")
+            fig.savefig(tmp, dpi=120, format=fmt)
     return ax

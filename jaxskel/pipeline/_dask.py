@@ -67,24 +67,27 @@ def _fit_group(
     bones: Mapping[str, Any],
     signatures: Mapping[int, str],
     batch_size: int,
-) -> list[tuple[int, dict[str, Any], str]]:
-    """Worker task: fit a group of trials in-process; return (index, row, output) per trial."""
+) -> list[tuple[int, dict[str, Any], str, list[tuple[str, str]]]]:
+    """Worker task: fit a group of trials in-process; return (index, row, traceback, warnings)
+    per trial (the warnings its fit raised, :func:`jaxskel.pipeline._trial_warnings.pack`ed:
+    the client warns them naming the trial, the worker says nothing)."""
     from .._runtime.compile_cache import enable_compile_cache
     from ._local import default_devices, Item, run_local
+    from ._trial_warnings import pack
 
     enable_compile_cache()
     items = [
         Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out))
         for index, name, subject, inputs, out in packed
     ]
-    rows: list[tuple[int, dict[str, Any], str]] = []
+    rows: list[tuple[int, dict[str, Any], str, list[tuple[str, str]]]] = []
 
     def on_outcome(item: Any, outcome: Any) -> None:
-        rows.append((item.index, dict(outcome.row), outcome.traceback))
+        rows.append((item.index, dict(outcome.row), outcome.traceback, pack(outcome.warnings)))
 
     run_local(
         items, options, bones=bones, signatures=signatures, batch_size=batch_size, jobs=2,
-        devices=default_devices("auto"), keep_results=False, on_outcome=on_outcome,
+        devices=default_devices("auto"), keep_results=False, on_outcome=on_outcome, emit_warnings=False,
     )
     return rows
 
@@ -108,6 +111,7 @@ def run_distributed(
             'a scheduler needs Dask distributed: pip install "jaxskel[distributed]" (or "dask[distributed]")'
         ) from None
     from ._local import TrialOutcome, failed
+    from ._trial_warnings import emit, unpack
 
     own = not isinstance(scheduler, Client)
     try:
@@ -139,12 +143,14 @@ def run_distributed(
                 for it in group:
                     on_outcome(it, failed(it, RuntimeError(f"Dask task failed: {type(exc).__name__}: {exc}"), 0.0))
                 continue
-            for index, row, trace in rows:
+            for index, row, trace, *packed in rows:
                 it = by_index[index]
                 status = row.get("status", "failed")
                 out = it.output if status == "ok" else None
+                caught = unpack(packed[0]) if packed else ()
+                emit(it.name, caught)  # the worker's warnings, here, naming the trial
                 on_outcome(it, TrialOutcome(it.name, it.subject, status, error=row.get("error", ""),
-                                            output=out, row=row, traceback=trace))
+                                            output=out, row=row, traceback=trace, warnings=caught))
     finally:
         if own:
             client.close()

@@ -7,6 +7,7 @@ The Dask workers (:mod:`jaxskel.pipeline._dask`) run this same pipeline.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import os
 import threading
@@ -28,6 +29,7 @@ from ._batch_io import (
 )
 from ._options import FitOptions
 from ._plan import PreparedFit, StagePlan, moving_frames
+from ._trial_warnings import Caught, TrialWarnings, emit
 
 __all__ = ["DEVICE_LOCK", "Item", "TrialOutcome", "default_devices", "failed", "run_local"]
 
@@ -62,7 +64,9 @@ class TrialOutcome:
     same inputs and settings was already there) or ``"failed"`` (``error`` says
     why; ``traceback`` is set for unexpected, non-jaxskel errors). ``result`` is
     the :class:`jaxskel.SkeletonResult` when kept in memory; ``output`` the
-    result file; ``row`` the summary-table row.
+    result file; ``row`` the summary-table row; ``warnings`` the warnings its fit
+    raised, ``(category, text)`` each once (:func:`jaxskel.fit_batch` also warns
+    them again, naming the trial: :mod:`jaxskel.pipeline._trial_warnings`).
     """
 
     name: str
@@ -73,6 +77,7 @@ class TrialOutcome:
     result: Any = None
     row: dict[str, Any] = dataclasses.field(default_factory=dict)
     traceback: str = ""
+    warnings: tuple[Caught, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -145,8 +150,10 @@ def _shared(works: list[_Work], solve: Callable[[list[Any]], list[Any]], attr: s
         return out
 
 
-def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Callable) -> list[_Work]:
-    """All-pairs costs, then tree joints, of several prepared trials together."""
+def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Callable,
+                 within: Callable[[Item], Any] = lambda item: contextlib.nullcontext()) -> list[_Work]:
+    """All-pairs costs, then tree joints, of several prepared trials together; each trial's
+    own steps run ``with within(item)`` (its warnings are caught for it)."""
     from ..joints import (
         pair_costs_from,
         solve_pairs,
@@ -165,11 +172,11 @@ def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Ca
         if sol is None:
             continue
         try:
-            with plan.stage(w.prep, "joint costs"):
+            with within(w.item), plan.stage(w.prep, "joint costs"):
                 pair_costs = pair_costs_from(w.pairs, sol)
             # the pose check inside runs JAX code (segment poses): under the lock, like every
             # other JAX stage, or it overlaps a finishing trial's programs and both hang
-            with plan.stage(w.prep, "tree joints"), DEVICE_LOCK:
+            with within(w.item), plan.stage(w.prep, "tree joints"), DEVICE_LOCK:
                 w.tree = tree_problem(
                     moving_frames(w.prep.trial, w.prep.segmentation), w.prep.segmentation, pair_costs, root=j.root,
                     alpha=j.alpha, alpha_tree=j.alpha_tree, method=j.method, pose_check=j.pose_check,
@@ -188,7 +195,8 @@ def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Ca
         if sol is None:
             continue
         try:
-            w.topology = topology_from(w.tree, sol)
+            with within(w.item):
+                w.topology = topology_from(w.tree, sol)
             w.prep.timings["tree joints"] += share
             w.tree = None
             done.append(w)
@@ -227,66 +235,96 @@ def run_local(
     devices: Any,
     keep_results: bool,
     on_outcome: Callable[[Item, TrialOutcome], None],
+    emit_warnings: bool = True,
 ) -> None:
-    """The in-process pipeline (module docstring); reports every trial to ``on_outcome``."""
+    """The in-process pipeline (module docstring); reports every trial to ``on_outcome``.
+
+    Each trial's warnings are caught for it (:mod:`jaxskel.pipeline._trial_warnings`) and
+    travel in its outcome (``TrialOutcome.warnings``); with ``emit_warnings`` they are
+    also warned again, naming the trial, from this (the calling) thread.
+    """
     prep_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-prepare")
     finish_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-finish")
     waiting = collections.deque(items)
     preparing: collections.deque[tuple[Item, Future]] = collections.deque()
     finishing: list[Future] = []
+    caught = TrialWarnings(records_under=DEVICE_LOCK)
+    unsaid: collections.deque[tuple[str, tuple[Caught, ...]]] = collections.deque()
+
+    def report(item: Item, outcome: TrialOutcome) -> None:
+        outcome = dataclasses.replace(outcome, warnings=caught.take(item.index))
+        if emit_warnings and outcome.warnings:
+            unsaid.append((item.name, outcome.warnings))
+        on_outcome(item, outcome)
+
+    def say_warnings() -> None:
+        # Under the lock no thread records warnings (StagePlan.grow_count does so under it),
+        # so these reach the caller's display, not another trial's record.
+        with DEVICE_LOCK:
+            caught.heal()
+            while unsaid:
+                emit(*unsaid.popleft(), stacklevel=3)
 
     def fail(work: _Work, exc: BaseException) -> None:
-        on_outcome(work.item, failed(work.item, exc, time.perf_counter() - work.t0))
+        report(work.item, failed(work.item, exc, time.perf_counter() - work.t0))
+
+    def prepare(item: Item) -> _Work:
+        with caught.trial(item.index):
+            return _prepare(item, options)
 
     def top_up() -> None:
         while waiting and len(preparing) < batch_size + jobs:
             item = waiting.popleft()
-            preparing.append((item, prep_pool.submit(_prepare, item, options)))
+            preparing.append((item, prep_pool.submit(prepare, item)))
 
     def finish(work: _Work) -> None:
-        try:
-            outcome = _finish(work, options, bones, signatures.get(work.item.index), keep_results)
-        except Exception as exc:  # noqa: BLE001
-            outcome = failed(work.item, exc, time.perf_counter() - work.t0)
-        on_outcome(work.item, outcome)
+        with caught.trial(work.item.index):
+            try:
+                outcome = _finish(work, options, bones, signatures.get(work.item.index), keep_results)
+            except Exception as exc:  # noqa: BLE001
+                outcome = failed(work.item, exc, time.perf_counter() - work.t0)
+        report(work.item, outcome)
 
-    try:
-        top_up()
-        while preparing:
-            # A full batch (or what is left): while the main thread waits, the lock is free
-            # for the finishing stage of the previous batch and the preparation of this one.
-            ready = []
-            while preparing and len(ready) < batch_size:
-                ready.append(preparing.popleft())
-                ready[-1][1].exception()  # wait for it
-                top_up()
-            works = []
-            for item, fut in ready:
-                exc = fut.exception()
-                if exc is not None:
-                    on_outcome(item, failed(item, exc, 0.0))
-                else:
-                    works.append(fut.result())
-            if works:
-                if near_map_limit():
-                    # XLA crashes past the kernel's mapping limit; JAX's programs may be
-                    # dropped only while no other thread runs them (jaxskel._runtime.map_limit)
-                    for fut in finishing:
-                        fut.exception()
-                    for _, fut in preparing:
-                        fut.exception()
-                    release_programs_near_map_limit(stacklevel=1)
-                for work in _solve_batch(works, options, devices, fail):
-                    finishing.append(finish_pool.submit(finish, work))
-            # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished
-            while sum(not f.done() for f in finishing) > 2 * jobs:
-                next(f for f in finishing if not f.done()).exception()
+    with caught.installed():
+        try:
             top_up()
-        for f in finishing:
-            f.result()
-    finally:
-        prep_pool.shutdown(wait=True, cancel_futures=True)
-        finish_pool.shutdown(wait=True, cancel_futures=True)
+            while preparing:
+                # A full batch (or what is left): while the main thread waits, the lock is free
+                # for the finishing stage of the previous batch and the preparation of this one.
+                ready = []
+                while preparing and len(ready) < batch_size:
+                    ready.append(preparing.popleft())
+                    ready[-1][1].exception()  # wait for it
+                    top_up()
+                works = []
+                for item, fut in ready:
+                    exc = fut.exception()
+                    if exc is not None:
+                        report(item, failed(item, exc, 0.0))
+                    else:
+                        works.append(fut.result())
+                if works:
+                    if near_map_limit():
+                        # XLA crashes past the kernel's mapping limit; JAX's programs may be
+                        # dropped only while no other thread runs them (jaxskel._runtime.map_limit)
+                        for fut in finishing:
+                            fut.exception()
+                        for _, fut in preparing:
+                            fut.exception()
+                        release_programs_near_map_limit(stacklevel=1)
+                    for work in _solve_batch(works, options, devices, fail, lambda item: caught.trial(item.index)):
+                        finishing.append(finish_pool.submit(finish, work))
+                say_warnings()
+                # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished
+                while sum(not f.done() for f in finishing) > 2 * jobs:
+                    next(f for f in finishing if not f.done()).exception()
+                top_up()
+            for f in finishing:
+                f.result()
+        finally:
+            prep_pool.shutdown(wait=True, cancel_futures=True)
+            finish_pool.shutdown(wait=True, cancel_futures=True)
+            say_warnings()
 
 
 def default_devices(devices: Any) -> Any:

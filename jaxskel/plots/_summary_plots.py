@@ -215,7 +215,12 @@ def plot_tree(result: Any, ax: Any = None) -> Any:
 
 
 def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, overwrite: bool = False) -> Any:
-    """2 x 3 summary figure; saved atomically to ``path`` when given."""
+    """2 x 3 summary figure; saved atomically to ``path`` when given (its suffix, one of the
+    image types matplotlib writes, picks the format; checked before the figure is drawn)."""
+    if path is not None:
+        from ..io import check_output, image_format
+
+        fmt = image_format(check_output(path, "image"))
     plt = _plt()
     fig = plt.figure(figsize=(19, 11))
     plot_distance_std(result, fig.add_subplot(2, 3, 1))
@@ -230,6 +235,6 @@ def plot_summary(result: Any, path: str | os.PathLike[str] | None = None, *, ove
         from ..io import atomic_output
 
         with atomic_output(path, overwrite) as tmp:
-            fig.savefig(tmp, dpi=110, format=os.path.splitext(str(path))[1].lstrip(".") or "png")
+            fig.savefig(tmp, dpi=110, format=fmt)
         plt.close(fig)
     return fig

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import InputError
-from ..io import atomic_output
+from ..io import atomic_output, check_output
 from ..segment import names_from_markers, safe_name
 
 if TYPE_CHECKING:
@@ -100,6 +100,7 @@ def export_bvh(
 
     Returns the path written.
     """
+    check_output(path, "bvh")  # before any work: a folder, not .bvh, an unwritable folder
     if units not in _UNITS:
         raise InputError(f"units must be 'm' or 'cm', got {units!r}")
     order = str(rotation_order).upper()

@@ -53,7 +53,7 @@ import h5py
 import numpy as np
 
 from .._errors import InputError, SchemaError
-from ..io import atomic_output, input_sources, put, refuse_input
+from ..io import atomic_output, check_output, input_sources, put, refuse_input
 
 __all__ = ["SCHEMA_VERSION", "save_result", "load_result", "ResultFile"]
 
@@ -99,7 +99,7 @@ def save_result(
     """
     from .._version import __version__
 
-    path = Path(path)
+    path = check_output(path, "result")  # a folder, not .h5/.hdf5, an unwritable folder
     refuse_input(path, input_sources(result.trial), "the result file")
     seg = result.segmentation
     topo = result.topology
