@@ -129,7 +129,8 @@ def _prepare(item: Item, options: FitOptions) -> _Work:
     j = options.joints
     with plan.stage(work.prep, "joint costs"):
         work.pairs = all_pairs_problem(
-            moving_frames(work.prep.trial, work.prep.segmentation), work.prep.segmentation, alpha=j.alpha, max_frames=j.topology_frames, method=j.method,
+            moving_frames(work.prep.trial, work.prep.segmentation), work.prep.segmentation, alpha=j.alpha,
+            max_frames=j.topology_frames, method=j.method,
         )
     return work
 

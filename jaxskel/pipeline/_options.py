@@ -235,7 +235,8 @@ class SegmentOptions(_Group):
 
     def kwargs(self) -> dict[str, Any]:
         """The keyword arguments of :func:`jaxskel.segment.segment_markers` (without the count)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("n_segments", "leave_out")}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if f.name not in ("n_segments", "leave_out")}
 
 
 @dataclasses.dataclass(frozen=True)
