@@ -34,10 +34,12 @@ each equation weighted by the inverse variance of neighbour k's position, with a
 prior's placement. For a single sliding joint this is the weighted mean of its
 neighbours' coordinates along the axis.
 
-**Markers that straddle the joint** take precedence (:func:`straddling_pair`): where two
-markers of the joint's segments sit on the axis on either side of the centre (the medial
-and lateral epicondyles of a knee, the two styloids of a wrist), the centre goes midway
-between them along the axis, which is where a person puts it. With ``t = a . (m - p)``
+**Landmarks that straddle the joint** take precedence (:func:`straddling_pair`): where two
+anatomical markers of a static trial, left out of the grouping (the medial and lateral
+epicondyles of a knee, the malleoli of an ankle), sit on the axis on either side of the
+joint, the centre goes midway between them along the axis, which is where a person puts
+it. The fit's own markers are not candidates: on a moving limb an oblique axis passes
+pairs of surface markers (two midfoot markers for an ankle). With ``t = a . (m - p)``
 the coordinate of marker m along the axis from the joint p and ``r`` its distance from
 the axis, two markers nearer this joint than any other straddle it when both ``r`` are at
 most :data:`STRADDLE_RATIO` times their separation ``|t_1 - t_2|`` (their line within
@@ -54,7 +56,7 @@ from jaxtyping import Bool, Float, Int
 
 __all__ = [
     "MAX_BONE_COSINE", "MAX_OFF_AXIS", "MAX_OFF_AXIS_REFINED", "MIN_ROTATION_RMS", "STRADDLE_RATIO", "hinge_axes",
-    "axial_coordinates", "hinge_shifts", "straddling_pair",
+    "MIN_STRADDLE_WIDTH", "STRADDLE_REACH", "axial_coordinates", "axis_along_a_bone", "hinge_shifts", "longest_bone", "straddling_pair",
 ]
 
 #: A joint slides only if it turns as a hinge: the share of its rotation about the other
@@ -95,6 +97,16 @@ MIN_ROTATION_RMS = float(np.deg2rad(5.0))
 #: markers of a limb's surface, which lie across the axis, not along it.
 STRADDLE_RATIO = 0.6
 
+#: Both straddling markers lie within this many times their separation of the current
+#: centre: the two sides of the joint, not a pair of markers further along a limb (two
+#: midfoot markers 2 cm apart, 13 cm from the ankle, that an oblique axis happens to pass).
+STRADDLE_REACH = 1.5
+
+#: Straddling markers are at least this fraction of the joint's longest bone apart: the
+#: width of a joint across its axis (epicondyles, malleoli, styloids: 0.17-0.25 of the
+#: bone), not two markers on one side of a limb.
+MIN_STRADDLE_WIDTH = 0.1
+
 #: Ridge on the shifts (m^2 per m^2 of equation residual); see the module docstring.
 _RIDGE = 1e-6
 
@@ -134,6 +146,28 @@ def _neighbours(edges: np.ndarray, j: int):
                 yield side, int(k), 0 if edges[k, 0] == seg else 1
 
 
+def longest_bone(edges: Int[np.ndarray, "J 2"], j: int, joint_points: Float[np.ndarray, "J 2 3"]) -> float:
+    """The longest distance from joint j to another joint on one of its segments (0: none)."""
+    lengths = [np.linalg.norm(joint_points[k, k_side] - joint_points[j, side])
+               for side, k, k_side in _neighbours(np.asarray(edges), j)]
+    return float(max(lengths, default=0.0))
+
+
+def axis_along_a_bone(
+    edges: Int[np.ndarray, "J 2"], j: int, joint_points: Float[np.ndarray, "J 2 3"],
+    axes: Float[np.ndarray, "J 2 3"],
+) -> bool:
+    """Whether joint j's axis runs along one of its bones (cosine with the line to a
+    neighbouring joint above :data:`MAX_BONE_COSINE`): a twist, whose centre the bone line,
+    not a plane or a pair of markers across it, fixes."""
+    for side, k, k_side in _neighbours(np.asarray(edges), j):
+        bone = joint_points[k, k_side] - joint_points[j, side]
+        length = np.linalg.norm(bone)
+        if length > 0 and abs(axes[j, side] @ bone) > MAX_BONE_COSINE * length:
+            return True
+    return False
+
+
 def hinge_shifts(
     edges: Int[np.ndarray, "J 2"],
     slide: Bool[np.ndarray, " J"],
@@ -153,11 +187,8 @@ def hinge_shifts(
     slide = np.array(slide, dtype=bool)
     n_joints = edges.shape[0]
     for j in np.flatnonzero(slide):
-        for side, k, k_side in _neighbours(edges, j):
-            bone = joint_points[k, k_side] - joint_points[j, side]
-            length = np.linalg.norm(bone)
-            if length > 0 and abs(axes[j, side] @ bone) > MAX_BONE_COSINE * length:
-                slide[j] = False
+        if axis_along_a_bone(edges, j, joint_points, axes):
+            slide[j] = False
     unknown = np.flatnonzero(slide)
     column = {int(j): i for i, j in enumerate(unknown)}
     rows, rhs = [], []
@@ -181,15 +212,18 @@ def hinge_shifts(
 
 
 def straddling_pair(
-    along: Float[np.ndarray, " N"], off: Float[np.ndarray, " N"]
+    along: Float[np.ndarray, " N"], off: Float[np.ndarray, " N"], bone: float = 0.0
 ) -> tuple[int, int, float] | None:
     """The pair of markers that straddles a hinge (module docstring), or ``None``.
 
     ``along[i]``: marker i's coordinate along the axis from the current centre (metres);
     ``off[i]``: its distance from the axis. The candidates are markers nearer this joint
     than any other (the caller's choice). A pair straddles the joint when both lie within
-    :data:`STRADDLE_RATIO` times their separation of the axis; of several, the one closest
-    to the axis relative to its separation. Returns ``(i, k, shift)`` with ``along[i] >
+    :data:`STRADDLE_RATIO` times their separation of the axis and within
+    :data:`STRADDLE_REACH` times it of the centre; of several, the one closest to the axis
+    relative to its separation. The pair must also be at least :data:`MIN_STRADDLE_WIDTH`
+    times ``bone`` apart (the joint's longest bone: a knee's epicondyles are about a fifth
+    of a femur apart, two markers on one side of a foot a twentieth of a shank). Returns ``(i, k, shift)`` with ``along[i] >
     along[k]`` and ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
     the centre midway between them (the current centre, which the motion leaves free along
     the axis, need not lie between them).
@@ -202,6 +236,9 @@ def straddling_pair(
     t, r = t[ok], r[ok]
     sep = np.abs(t[:, None] - t[None, :])
     worst = np.maximum(r[:, None], r[None, :]) / np.where(sep > 0, sep, np.nan)
+    reach = np.hypot(t, r)  # distance from the current centre
+    sep = np.where(sep >= MIN_STRADDLE_WIDTH * bone, sep, 0.0)
+    worst[np.maximum(reach[:, None], reach[None, :]) > STRADDLE_REACH * sep] = np.nan  # a pair off to one side
     np.fill_diagonal(worst, np.nan)
     if not np.isfinite(worst).any():
         return None

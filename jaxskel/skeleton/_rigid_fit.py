@@ -75,7 +75,8 @@ from .._math.procrustes import procrustes
 from .._math.rotation import quat_to_matrix
 from ..io import Trial
 from ._hinge_centres import (
-    MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, axial_coordinates, hinge_axes, hinge_shifts, straddling_pair,
+    MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, axial_coordinates, axis_along_a_bone, hinge_axes, hinge_shifts,
+    longest_bone, straddling_pair,
 )
 from ._ik import (
     DEFAULT_PRIOR_WEIGHT,
@@ -293,7 +294,6 @@ def _place_hinges(
     gpa_rms: np.ndarray,
     usable: np.ndarray,
     alignable: np.ndarray,
-    covered: np.ndarray,
     js: np.ndarray,
     jm: np.ndarray,
     landmark_local: np.ndarray,
@@ -307,8 +307,8 @@ def _place_hinges(
     along the axis seen in that frame (the parent's pose, else the child's, else the
     nearest frame's). Returns the shifts (J,), the parent-frame axes (J, 3; NaN for
     joints not moved) and each joint's weight as a neighbour (J,; inverse variance of
-    its centre, for :func:`_replace_hinges`) and the pair of markers that straddles
-    each joint (J, 2: used-marker indices, ``n_used + k`` for landmark k of
+    its centre, for :func:`_replace_hinges`) and the pair of landmarks that straddles
+    each joint (J, 2: ``n_used + k`` for landmark k of
     ``landmark_local`` (S, L, 3, each landmark in each segment's Procrustes frame, NaN
     where unknown; ``landmark_joint`` (L,) the joint each is nearest); -1 where none does:
     the limb plane placed it). A joint moves only if
@@ -338,28 +338,17 @@ def _place_hinges(
             axes[j] = a_p, a_c
             movable[j] = off_axis < MAX_OFF_AXIS
     points = np.nan_to_num(points)
-    # Markers that straddle a hinge place it midway between them; it is then a fixed
-    # neighbour of the others' limb-plane placement.
+    # Landmarks (markers on no segment: a static trial's medial markers) that straddle a
+    # hinge place it midway between them; it is then a fixed neighbour of the others'
+    # limb-plane placement. The markers of the fit are not candidates: on a moving limb an
+    # oblique axis passes pairs of surface markers (two midfoot markers for an ankle).
     straddle = np.full((n_joints, 2), -1)
     placed = np.zeros(n_joints)
     for j in np.flatnonzero(movable):
+        if axis_along_a_bone(edges, j, points, axes):
+            continue
         ids, along, off = [], [], []
         n_used = sum(len(m) for m in members)
-        for side in (0, 1):
-            s = int(edges[j, side])
-            cloud = ref[s, : len(members[s])]
-            # the segment's markers nearer this joint than its other joints
-            others = [slot(s, k) for k in seg_joints[s] if k != j]
-            near = np.linalg.norm(cloud - ref[s, slot(s, j)], axis=-1)
-            if others:
-                near = near < np.min(np.linalg.norm(cloud[:, None] - ref[s, others][None], axis=-1), axis=1)
-            else:
-                near = np.ones(len(cloud), bool)
-            seen = covered[s, : len(members[s])] & np.isfinite(cloud).all(axis=1) & near
-            t, r = axial_coordinates(cloud[seen], points[j, side], axes[j, side])
-            ids += members[s][seen].tolist()
-            along += t.tolist()
-            off += r.tolist()
         # a landmark nearer this joint than any other, once, from the parent's frame (else the child's)
         for k in np.flatnonzero(landmark_joint == j):
             for side in (0, 1):
@@ -370,7 +359,8 @@ def _place_hinges(
                     along.append(float(t[0]))
                     off.append(float(r[0]))
                     break
-        found = straddling_pair(np.asarray(along), np.asarray(off))
+        bone = longest_bone(edges, j, points)
+        found = straddling_pair(np.asarray(along), np.asarray(off), bone) if bone > 0 else None
         if found is not None:
             straddle[j] = ids[found[0]], ids[found[1]]
             placed[j] = found[2]
@@ -466,9 +456,8 @@ def _replace_hinges(
     axis_local: np.ndarray,
     straddle: np.ndarray,
 ) -> np.ndarray:
-    """Put the moved hinges back on the refined skeleton, in place: midway between their
-    straddling markers (``straddle``, J x 2 used-marker indices, -1 for none), the others
-    into their limb plane.
+    """Put the moved hinges back into their limb plane on the refined skeleton, in place;
+    those placed between straddling landmarks (``straddle``, J x 2, -1 for none) stay.
 
     Frames: a segment's origin is its proximal joint, so joint j sits at ``j_th[j]`` in
     its parent and at 0 in its child. Moving it by ``s a`` moves ``j_th[j]`` by ``s a_p``
@@ -496,23 +485,13 @@ def _replace_hinges(
         m_th[useg == c] -= amount * axes[j, 1]
         j_th[edges[:, 0] == c] -= amount * axes[j, 1]
 
-    shift = np.zeros(n_joints)
-    n_used = useg.size
-    fixed = ok & (straddle.max(axis=1) >= n_used)  # placed by landmarks, which the refinement does not carry
-    straddled = ok & (straddle[:, 0] >= 0) & ~fixed
-    for j in np.flatnonzero(straddled):
-        # midway between the straddling markers, on the refined offsets: a parent's marker
-        # from the joint, a child's from its origin (the joint itself)
-        p = int(edges[j, 0])
-        along = [axes[j, 0] @ (m_th[i] - j_th[j]) if useg[i] == p else axes[j, 1] @ m_th[i] for i in straddle[j]]
-        shift[j] = 0.5 * (along[0] + along[1])
-        move(j, shift[j])
     points = np.zeros((n_joints, 2, 3))
     points[:, 0] = j_th
-    plane = hinge_shifts(edges, ok & ~straddled & ~fixed, points, axes, weights)
-    for j in np.flatnonzero(ok & ~straddled & ~fixed):
+    free = ok & (straddle[:, 0] < 0)  # placed by landmarks, which the refinement does not carry: kept
+    plane = hinge_shifts(edges, free, points, axes, weights)
+    for j in np.flatnonzero(free):
         move(j, plane[j])
-    return shift + plane
+    return plane
 
 
 # ------------------------------------------------------------------ refinement
@@ -730,7 +709,8 @@ def fit_rigid(
         trial fitted with a dynamic one, :func:`jaxskel.segment.left_out_markers`): they take
         no part in the fit, but two that straddle a sliding joint place it midway between
         them (:func:`jaxskel.skeleton._hinge_centres.straddling_pair`), located in the
-        joint's segment frames from the frames that show them.
+        joint's segment frames from the frames that show them. The fit's own markers never
+        do (a moving limb's oblique axis passes pairs of surface markers).
 
     Returns
     -------
@@ -835,7 +815,7 @@ def fit_rigid(
         landmarks, padded, real, gpa_rot, gpa_t, usable, n_frames, ref, edges, members, seg_joints
     )
     hinge_shift, hinge_axis, weights_of_joints, straddle = _place_hinges(
-        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, covered, js, jm,
+        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, js, jm,
         landmark_local, landmark_joint,
     )
 
