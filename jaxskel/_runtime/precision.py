@@ -24,6 +24,12 @@ What follows from JAX's mode being per thread and part of every trace:
   functions return JAX arrays of the dtype they computed in (float64 for numpy
   input); in a process whose 64-bit mode is off, the next JAX operation on such an
   array converts it to float32 (convert with ``numpy.asarray`` to keep float64).
+* **One frame more.** The wrapper is a frame between the function and its caller: a
+  warning the function aims at its caller counts it (``stacklevel=3``, not 2). Where
+  warnings count many frames up through the function (:func:`jaxskel.fit_skeleton`),
+  its body enters :func:`float64` in a ``with`` block instead, which adds no frame.
+* **Private functions** that run JAX code expect to be called inside the scope (by the
+  public functions that call them); a caller of its own (a test, a benchmark) enters it.
 """
 
 from __future__ import annotations
