@@ -24,7 +24,10 @@ import time
 from pathlib import Path
 
 CHILD = textwrap.dedent("""
-    import sys, warnings, jaxskel
+    import sys, warnings
+    from jaxskel._runtime.own_process import own_process
+    own_process()  # jaxskel's own process: single-threaded Eigen unless the environment says otherwise
+    import jaxskel
     from jaxskel import synth
     warnings.simplefilter("ignore")
     n, duration, out = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3]

@@ -194,6 +194,11 @@ def print_table(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--sizes", type=int, nargs="+")

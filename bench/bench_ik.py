@@ -38,7 +38,7 @@ import optimistix as optx  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-import jaxskel  # noqa: E402,F401  (enables float64)
+import jaxskel  # noqa: E402
 from jaxskel import synth  # noqa: E402
 from jaxskel.skeleton._ik import (  # noqa: E402
     DEFAULT_PRIOR_WEIGHT,
@@ -128,6 +128,11 @@ def optimistix_ik(model):
 
 
 def main() -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small shapes (CI)")
     parser.add_argument("--json", help="write the figures to this JSON file")

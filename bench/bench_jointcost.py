@@ -34,7 +34,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxskel import synth  # noqa: E402  (importing jaxskel enables float64)
+from jaxskel import synth  # noqa: E402
 
 from jaxskel._math.padding import bucket_size
 from jaxskel.joints._cost import solve_joints  # noqa: E402
@@ -100,6 +100,11 @@ def run_case(name, xs, ms, joints, variants=(("lm", None), ("ncg", None))):
 
 
 def main(argv=None):
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small shapes (CI smoke run)")
     parser.add_argument("--json", help="write the rows to this JSON file")

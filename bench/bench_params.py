@@ -246,6 +246,11 @@ def measure(n_frames: int = 24000, seeds: list[int] | None = None, repeats: int 
 
 
 def main() -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="2,400 frames and one accuracy seed")
     ap.add_argument("--frames", type=int, default=24000)

@@ -141,6 +141,11 @@ def _plot(rows: list[dict], path: Path) -> None:
 
 
 def main() -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="3 mm, seed 0, 10 s")
     ap.add_argument("--amplitudes", type=float, nargs="+", default=[0.0, 1.0, 2.0, 3.0, 5.0], help="mm")

@@ -89,6 +89,11 @@ def make_trials(n: int, duration: float, first_seed: int = 0) -> list:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[16, 64])
     p.add_argument("--one", type=int, default=4, help="trials fitted one by one (0: none)")

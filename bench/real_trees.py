@@ -84,6 +84,11 @@ def judge(rel: str, **fit_kwargs) -> dict:
 
 
 def main(argv=None) -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default="")
     parser.add_argument("--json")

@@ -80,6 +80,11 @@ def run_one(seed: int, motion: str, fraction: float) -> dict:
 
 
 def main() -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--walk-seeds", type=int, nargs="*", default=[],

@@ -69,8 +69,6 @@ def machine_info() -> dict:
 
 
 def run(spec: dict, only: set[str] | None) -> dict:
-    import jaxskel  # noqa: F401  (enables float64 like any user's import)
-
     record = {"case": spec, "device": device_info(), "machine": machine_info()}
     kind = spec["kind"]
     if kind == "pipeline":
@@ -108,6 +106,11 @@ def run(spec: dict, only: set[str] | None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from jaxskel._runtime.own_process import own_process
+
+    # jaxskel's own process: single-threaded Eigen before JAX starts, and float64 for the
+    # script's own arrays and the private functions it calls as well as jaxskel's own
+    own_process(x64=True)
     import argparse
     import json
 

@@ -4,35 +4,25 @@ The flat public API lives here; the implementation is in small private modules
 (``jaxskel.io._trial``, ``jaxskel.clean.clean._clean``, ...). Names are imported lazily so that
 ``import jaxskel`` stays fast and a command-line call pays only for what it uses.
 
-jaxskel enables JAX's 64-bit mode on import (joint fitting needs float64 accuracy;
-arrays passed as float32 still compute in float32). Set ``JAXSKEL_NO_X64=1`` before
-importing to leave JAX's global setting alone.
+Importing jaxskel changes no global state: no JAX setting, no environment variable, no
+logging configuration. jaxskel computes in float64 (joint fitting needs it) by turning
+JAX's 64-bit mode on only for the length of each of its own calls, in the calling
+thread (``jaxskel._runtime.precision``); a float32 model in the same process stays
+float32, and the pure functions (``jaxskel.learn``, ...) compute in float32 inside it.
 
-jaxskel also runs XLA's CPU backend with single-threaded Eigen
-(``--xla_cpu_multi_thread_eigen=false`` in ``XLA_FLAGS``) unless ``XLA_FLAGS``
-already says otherwise or ``JAXSKEL_XLA_MULTI_THREAD=1``: with the multi-threaded
-Eigen pool, vmapped solves were seen to wedge for good on 2-core machines under
-load (see ``jaxskel._math.linalg`` for the mechanism, and ``docs/design.md``). This only
-takes effect if no JAX computation ran before ``import jaxskel``.
+On a CPU with few cores, start a process that fits with XLA's single-threaded Eigen,
+``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false``, set before JAX's first computation:
+with the multi-threaded pool, batched LAPACK kernels (the rigid fit's) were seen to
+wedge for good on 2-core machines under load (``jaxskel._math.linalg``, docs/limits.md).
+The ``jaxskel`` command sets it for its own process.
 """
 
 from __future__ import annotations
 
 import importlib
-import os
 from typing import TYPE_CHECKING, Any
 
 from ._version import __version__  # noqa: F401  (public: jaxskel.__version__)
-
-if not os.environ.get("JAXSKEL_XLA_MULTI_THREAD") and "xla_cpu_multi_thread_eigen" not in os.environ.get(
-    "XLA_FLAGS", ""
-):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
-
-if not os.environ.get("JAXSKEL_NO_X64"):
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
 
 # public name -> the part of jaxskel that defines it
 _LAZY = {

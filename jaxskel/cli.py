@@ -9,6 +9,10 @@
 Errors the user can fix (bad file, wrong units, degenerate motion) print one
 clear line and exit with status 2; nothing the user gave is overwritten
 unless ``--overwrite`` is passed.
+
+The command's process is jaxskel's own: :func:`main` sets XLA's single-threaded Eigen
+in ``XLA_FLAGS`` before JAX starts (:mod:`jaxskel._runtime.own_process`), which the
+library leaves to its users.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from ._runtime.compile_cache import enable_compile_cache
+from ._runtime.own_process import own_process
 from .pipeline._options import Choice, FitOptions, SettingInfo
 
 __all__ = ["main"]
@@ -398,6 +403,7 @@ def _info(path: Path) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    own_process()  # the command's process is jaxskel's own: single-threaded Eigen, before JAX starts
     args = _parser().parse_args(argv)
     if args.version:
         from ._version import __version__

@@ -13,6 +13,13 @@ import gc
 import shutil
 import tempfile
 
+# The test run is jaxskel's own process, as the command line is: single-threaded Eigen
+# (XLA_FLAGS) before JAX starts, against the thread-pool wedge of 2-core machines. JAX's
+# 64-bit mode stays off: the library's public functions turn it on for their own calls.
+from jaxskel._runtime.own_process import own_process
+
+own_process()
+
 import jax
 import pytest
 
@@ -53,6 +60,17 @@ def _drop_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+@pytest.fixture
+def float64():
+    """JAX's 64-bit mode on for the test (``jaxskel._runtime.precision.float64``): for tests
+    that call jaxskel's private JAX functions, which run inside the scope of the public
+    functions that call them, or that compare against float64 themselves."""
+    from jaxskel._runtime.precision import float64 as scope
+
+    with scope():
+        yield
 
 
 import matplotlib

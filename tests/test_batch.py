@@ -193,7 +193,9 @@ def test_chunks_are_spread_over_several_devices(tmp_path):
         print("SHARDED OK")
         """
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    # two forced host devices, with the run's single-threaded Eigen kept (conftest.py; jaxskel's import no longer adds it)
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2".strip()
+    env = dict(os.environ, XLA_FLAGS=flags)
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900)
     assert "SHARDED OK" in proc.stdout, proc.stderr[-3000:]
 

@@ -9,6 +9,10 @@ import pytest
 import jaxskel
 from jaxskel import synth
 
+# Derivatives against finite differences need float64 in the caller's own traces (jit,
+# grad, vmap), whose precision is the caller's: these tests run as a float64 user does.
+pytestmark = pytest.mark.usefixtures("float64")
+
 
 @pytest.fixture(scope="module")
 def linkage():

@@ -20,6 +20,10 @@ SHA-256 over everything that decides the traced program:
   argument tree (``str`` of the treedef: container types, equinox fields and their
   static values) and every leaf's type (dtype, shape, weak type).
 
+The x64 flag is read in the calling thread: JAX's 64-bit mode is per thread, and jaxskel
+turns it on only for its own calls (:mod:`jaxskel._runtime.precision`). The in-process
+programs are kept by the same flag.
+
 With no directory set (the default, and every library call outside the command line)
 :func:`call` is ``fn(*args, **static)``. The exported program is not differentiable
 (serialized without VJP), so tracers bypass it too. Any failure to export, read or
@@ -113,7 +117,8 @@ def call(fn: Callable, *args: Any, **static: Any) -> Any:
     if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
         return fn(*args, **static)
     types = tuple(jax.typeof(leaf) for leaf in leaves)
-    memo = (fn, tuple(sorted(static.items())), treedef, types)
+    # the 64-bit mode is per thread (jaxskel._runtime.precision) and changes the traced program
+    memo = (fn, tuple(sorted(static.items())), treedef, types, bool(jax.config.jax_enable_x64))
     program = _programs.get(memo)
     if program is None:
         with _lock:

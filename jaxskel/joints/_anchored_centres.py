@@ -63,6 +63,7 @@ from .._math.padding import bucket_size
 from .._math.procrustes import align_to_reference, procrustes
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import uses_cpu
+from .._runtime.precision import float64_scope
 
 __all__ = ["AnchoredCentres", "anchored_centres"]
 
@@ -268,6 +269,7 @@ def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None
     return tuple(np.asarray(v)[: len(problems)] for v in out)
 
 
+@float64_scope
 def anchored_centres(
     x: Float[np.ndarray, "F M 3"],
     mask: Bool[np.ndarray, "F M"],

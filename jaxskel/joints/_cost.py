@@ -103,6 +103,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
 from .._math.linalg import generalised_eigvalsh
+from .._runtime.precision import float64_scope
 from ._cost_lm import PairProblem, block_solve, inv3, levenberg_marquardt
 
 __all__ = ["JointSolution", "solve_joint", "solve_joints"]
@@ -494,6 +495,7 @@ def _prepare(markers, mask, alpha, c0, r0):
     return markers, mask, alpha, c0_arr, r0_arr, has_c0, has_r0
 
 
+@float64_scope
 def solve_joints(
     markers: Float[ArrayLike, "*batch F K 3"],
     mask: Bool[ArrayLike, "*batch F K"] | None = None,
@@ -562,6 +564,7 @@ def solve_joints(
     return jax.tree_util.tree_map(lambda leaf: leaf.reshape(batch + leaf.shape[1:]), flat)
 
 
+@float64_scope
 def solve_joint(
     markers: Float[ArrayLike, "F K 3"],
     mask: Bool[ArrayLike, "F K"] | None = None,

@@ -43,6 +43,7 @@ from .._errors import ConvergenceWarning, DegenerateMotionError, InputError
 from .._math.padding import bucket_size
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import uses_cpu
+from .._runtime.precision import float64_scope
 from ..io import Trial
 from ..segment import Segmentation
 from ._attachments import Attachment, attachment_tree
@@ -495,6 +496,7 @@ def pair_costs_from(problem: AllPairsProblem, sol: dict[str, np.ndarray]) -> Pai
     )
 
 
+@float64_scope
 def joint_costs(
     trial: Trial,
     segmentation: Segmentation,
@@ -694,7 +696,7 @@ def tree_problem(
             f"the joint-cost graph is disconnected ({len(roots)} components): some segment pairs "
             "are infeasible (see topology.pair_costs.reasons); the skeleton is a forest",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,  # fit_topology's caller (3 is float64_scope's wrapper)
         )
     j = len(edges)
     n_frames = trial.n_frames
@@ -801,7 +803,7 @@ def topology_from(problem: TreeProblem, sol: dict[str, np.ndarray]) -> Topology:
             f"{int((~converged).sum())} of {j} tree joints did not converge in {problem.max_steps} steps; "
             "see topology.steps / topology.result",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,  # fit_topology's caller (3 is float64_scope's wrapper)
         )
     return Topology(
         edges=problem.edges,
@@ -887,6 +889,7 @@ def untested_joints(segmentation: Segmentation, topology: Topology) -> list[Unte
     return found
 
 
+@float64_scope
 def fit_topology(
     trial: Trial,
     segmentation: Segmentation,

@@ -37,6 +37,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import InputError
 from .._math.rotation import horn_align
+from .._runtime.precision import float64_scope
 from ..joints import JointSolution, solve_joints
 from ..skeleton import (
     DEFAULT_PRIOR_WEIGHT,
@@ -140,6 +141,7 @@ class SkeletonStructure(eqx.Module):
 
 
 # ----------------------------------------------------------------------- joint cost
+@float64_scope
 def joint_cost_fn(
     markers: Float[ArrayLike, "*batch F K 3"],
     mask: Bool[ArrayLike, "*batch F K"],
@@ -224,6 +226,7 @@ def _gpa_step(y, args):
     return jnp.einsum("sij,spj->spi", rot0, mean) + t0[:, None, :]
 
 
+@float64_scope
 def rigid_fit_fn(
     structure: SkeletonStructure,
     markers: Float[ArrayLike, "F M 3"],
@@ -351,6 +354,7 @@ def _ik_model(structure: SkeletonStructure, joint_offsets, marker_offsets, dtype
     )
 
 
+@float64_scope
 def ik_fn(
     structure: SkeletonStructure,
     markers: Float[ArrayLike, "F M 3"],

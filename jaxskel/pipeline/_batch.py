@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from .._errors import InputError, JaxskelError
+from .._runtime.precision import float64_scope
 from ..io import Trial
 from ._batch_io import (
     BoneSpec,
@@ -203,6 +204,7 @@ class BatchResult(Sequence[TrialOutcome]):
         )
 
 
+@float64_scope
 def fit_batch(
     trials: Any,
     outdir: str | os.PathLike[str] | None = None,

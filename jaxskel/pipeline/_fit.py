@@ -15,6 +15,7 @@ from typing import Any
 
 from .._errors import InputError
 from .._runtime.map_limit import release_programs_near_map_limit
+from .._runtime.precision import float64
 from ..io import Trial
 from ..result import SkeletonResult
 from ._options import FitOptions
@@ -82,8 +83,11 @@ def fit_skeleton(
             bar.update(1)
 
         plan = StagePlan(options, segment_names=plan.segment_names, on_stage=on_stage)
-    try:
-        return plan.fit(trial_or_trials, stacklevel=3)  # the caller of fit_skeleton
-    finally:
-        if bar is not None:
-            bar.close()
+    # float64 for this call only; a with block, not a decorator, so that no frame is added
+    # between the fit's warnings and the caller they point at
+    with float64():
+        try:
+            return plan.fit(trial_or_trials, stacklevel=3)  # the caller of fit_skeleton
+        finally:
+            if bar is not None:
+                bar.close()

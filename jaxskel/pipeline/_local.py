@@ -20,6 +20,7 @@ from typing import Any
 
 from .._errors import InputError, JaxskelError
 from .._runtime.map_limit import near_map_limit, release_programs_near_map_limit
+from .._runtime.precision import float64_scope
 from ..joints import Topology
 from ._batch_io import (
     BoneSpec,
@@ -115,6 +116,7 @@ class _Work:
     topology: Topology | None = None
 
 
+@float64_scope
 def _prepare(item: Item, options: FitOptions) -> _Work:
     from ..io import load
     from ..joints import all_pairs_problem
@@ -206,6 +208,7 @@ def _solve_batch(works: list[_Work], options: FitOptions, devices: Any, fail: Ca
     return done
 
 
+@float64_scope
 def _finish(work: _Work, options: FitOptions, bones: Mapping[str, BoneSpec], sig: str | None,
             keep: bool) -> TrialOutcome:
     item, prep = work.item, work.prep
@@ -225,6 +228,7 @@ def _finish(work: _Work, options: FitOptions, bones: Mapping[str, BoneSpec], sig
     return TrialOutcome(item.name, item.subject, "ok", output=item.output, result=result if keep else None, row=row)
 
 
+@float64_scope
 def run_local(
     items: Sequence[Item],
     options: FitOptions,

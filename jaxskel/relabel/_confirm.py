@@ -55,6 +55,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionWarning, InputError
 from .._math.rotation import quat_to_matrix
+from .._runtime.precision import float64_scope
 from ..io import Trial
 from ._fragments import Fragments, fragment_arrays
 
@@ -113,6 +114,7 @@ def skeleton_link_cost(
     return np.sqrt(cost)
 
 
+@float64_scope
 def confirm_merges(
     trial: Trial,
     mapping: Any,
@@ -216,7 +218,7 @@ def confirm_merges(
             f"(within {1e3 * rigid_tolerance:.0f} mm of a rigid place on a segment); label merges were "
             "not checked against it. Fit a recording with more range of motion, or give n_segments.",
             DegenerateMotionWarning,
-            stacklevel=2,
+            stacklevel=3,  # confirm_merges' caller (2 is float64_scope's wrapper)
         )
         diagnostics = dict(mapping.diagnostics)
         diagnostics["skeleton"] = types.MappingProxyType(

@@ -80,6 +80,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
+from .._runtime.precision import float64_scope
 from ..io import Trial
 from ._assign import ChainProblem, Chains, spectral_clusters
 from ._fragments import (
@@ -235,6 +236,7 @@ def needs_merging(trial: Trial) -> bool:
     return bool(present.any(axis=0).sum() > present.sum(axis=1).max(initial=0))
 
 
+@float64_scope
 def merge_labels(
     trial: Trial,
     *,

@@ -74,6 +74,7 @@ from .._math.rotation import (
     quat_rotate,
     quat_to_matrix,
 )
+from .._runtime.precision import float64_scope
 
 __all__ = [
     "DEFAULT_POSE_WEIGHTS",
@@ -464,6 +465,7 @@ def _weights(weights: Mapping[str, float] | None) -> dict[str, float]:
     return out
 
 
+@float64_scope
 def normalize_arrays(
     joint_positions: Float[Any, "F J 3"],
     edges: Int[Any, "J 2"],
@@ -605,6 +607,7 @@ def normalize_arrays(
     )
 
 
+@float64_scope
 def normalize(
     skeleton: Any,
     motion: Any,

@@ -63,6 +63,7 @@ from .._math.rotation import (
     quat_to_matrix,
     quat_twist_angle,
 )
+from .._runtime.precision import float64_scope
 from . import _axes
 from ._normalize import (
     Normalization,
@@ -481,6 +482,7 @@ class Parameterization:
     def n_joints(self) -> int:
         return int(self.angles.shape[1])
 
+    @float64_scope
     def pose(
         self,
         angles: Float[Any, "F J 3"] | None = None,
@@ -646,7 +648,7 @@ def parameterize_normalized(
             f"EM axis extraction stopped after {max_em_steps} steps without settling for joint(s) "
             f"{np.flatnonzero(~out['converged']).tolist()}; raise max_em_steps or use method='joining'",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=4,  # parameterize's caller (3 is float64_scope's wrapper)
         )
     exercised = out["extent"] >= math.radians(min_extent_deg)
     if not exercised.all():
@@ -656,7 +658,7 @@ def parameterize_normalized(
             "their axes are not meaningful. Record a calibration phase that moves every joint "
             "through its main movements.",
             DegenerateMotionWarning,
-            stacklevel=3,
+            stacklevel=4,  # parameterize's caller (3 is float64_scope's wrapper)
         )
     return Parameterization(
         method=method,
@@ -689,6 +691,7 @@ def parameterize_normalized(
     )
 
 
+@float64_scope
 def parameterize(
     skeleton: Any,
     motion: Any,
@@ -729,6 +732,7 @@ def parameterize(
     return parameterize_normalized(normalization, method=method, n_axes=n_axes, **options)
 
 
+@float64_scope
 def parameterize_arrays(
     joint_positions: Float[Any, "F J 3"],
     edges: Int[Any, "J 2"],

@@ -68,11 +68,13 @@ from jaxtyping import Array, Bool, Float
 
 from .._errors import DegenerateMotionError, InputError
 from .._math.padding import bucket_size
+from .._runtime.precision import float64_scope
 from ..io import Trial
 
 __all__ = ["Segmentation", "segment_markers", "combine_trials", "count_singletons", "distance_std", "sample_frames", "white_noise"]
 
 
+@float64_scope
 @jax.jit
 def distance_std(
     x: Float[Array, "T M 3"], mask: Bool[Array, "T M"]
@@ -468,6 +470,7 @@ def _spectral(w: np.ndarray, n: int, seed: int) -> np.ndarray:
         return _canonical(model.fit_predict(w))
 
 
+@float64_scope
 def segment_markers(
     trial: Trial,
     n_segments: int | None = None,

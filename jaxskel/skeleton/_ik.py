@@ -98,6 +98,7 @@ from .._math.rotation import (
     skew,
     slerp,
 )
+from .._runtime.precision import float64_scope
 
 if TYPE_CHECKING:
     from ..io import Trial
@@ -200,6 +201,7 @@ def _markers(
     return jnp.einsum("mab,mb->ma", rot[marker_segment], marker_offsets) + trans[marker_segment]
 
 
+@float64_scope
 def forward_kinematics(
     root_position: Float[Array, "*batch 3"],
     rotations: Float[Array, "*batch S 4"],
@@ -568,6 +570,7 @@ def _residuals(y, args):
     return r_markers, e_prior * (prior_weight * 1e3)[:, None]
 
 
+@float64_scope
 def ik_solve(
     x: Float[Array, "M 3"],
     mask: Bool[Array, " M"],
@@ -872,6 +875,7 @@ def _interpolated(
     )
 
 
+@float64_scope
 def inverse_kinematics(
     skeleton: SkeletonLike,
     data: Trial | tuple[np.ndarray, np.ndarray] | np.ndarray,
@@ -1039,7 +1043,7 @@ def inverse_kinematics(
             f"inverse kinematics hit max_steps={max_steps} in {failures} frames (motion.result == 7); "
             "raise max_steps or check those frames for swapped or jumping markers",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,  # inverse_kinematics' caller (2 is float64_scope's wrapper)
         )
 
     def out(a: np.ndarray) -> np.ndarray:

@@ -84,6 +84,7 @@ from .._math.rotation_planes import (
     unit_quat_to_matrix,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.precision import float64_scope
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
 
@@ -773,6 +774,7 @@ def solve(
     limit = jnp.asarray(max_steps, jnp.int32)
     passes = jnp.asarray(HORN_PASSES, jnp.int32)
 
+    @float64_scope  # run in the pool's threads too, which do not inherit the caller's mode
     def run(k):
         sl = slice(k * chunk, (k + 1) * chunk)
         out = _program_cache.call(

@@ -73,6 +73,7 @@ from .._math.linalg import spd_solve
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
 from .._math.rotation import quat_to_matrix
+from .._runtime.precision import float64_scope
 from ..io import Trial
 from ._hinge_centres import (
     MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, axial_coordinates, axis_along_a_bone, hinge_axes, hinge_shifts,
@@ -201,6 +202,7 @@ class Skeleton:
         parent[self.edges[:, 1]] = self.edges[:, 0]
         return parent
 
+    @float64_scope
     def ik_model(self, n_markers: int | None = None, dtype: Any = np.float64) -> IKModel:
         """The arrays :func:`jaxskel.skeleton._ik.solve_frame` needs, markers padded to ``n_markers``."""
         return ik_model(
@@ -642,6 +644,7 @@ def _positive_number(value: object) -> bool:
     return real and bool(np.isfinite(value)) and value > 0
 
 
+@float64_scope
 def fit_rigid(
     trial: Trial | tuple[np.ndarray, np.ndarray],
     marker_segment: Sequence[int] | np.ndarray,
@@ -982,13 +985,13 @@ def fit_rigid(
             f"(the last update moved an offset by {offset_steps[-1]:.2g} m); "
             "raise max_sweeps (see skeleton.diagnostics['cost_history'])",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
         )
     if (results != RESULT_SUCCESSFUL).any():
         warnings.warn(
             f"IK hit max_steps={max_steps} in {(results != RESULT_SUCCESSFUL).sum()} of {results.size} fitting frames",
             ConvergenceWarning,
-            stacklevel=2,
+            stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
         )
     landmark_labels = tuple(landmarks.labels) if landmarks is not None else ()
 

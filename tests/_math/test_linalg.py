@@ -3,9 +3,13 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-import jaxskel  # noqa: F401  (x64)
 from jaxskel._math.linalg import cholesky, spd_solve
+
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
 
 
 def _spd(rng, n, cond=1e6):

@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-import jaxskel  # noqa: F401  (float64)
 from jaxskel._math import rotation, rotation_planes
+
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
 
 N = 64
 

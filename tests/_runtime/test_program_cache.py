@@ -17,6 +17,10 @@ import pytest
 from jaxskel import synth
 from jaxskel._runtime import program_cache as _program_cache
 
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
+
 
 class _Model(eqx.Module):
     weights: jax.Array
@@ -111,6 +115,19 @@ def test_whatever_changes_the_trace_gets_its_own_program(folder, monkeypatch, ch
         got = _program_cache.call(_program, model, arg, scale=scale)
         np.testing.assert_allclose(got["y"], _program(model, arg, scale=scale)["y"], rtol=1e-6)
     assert len(_saved(folder)) == 2
+
+
+def test_each_64_bit_mode_gets_its_own_program(folder):
+    """JAX's 64-bit mode is per thread and part of every trace (jaxskel turns it on for its
+    own calls only): the same float32 arguments in the other mode are another program, in
+    memory as on disk, never the one traced in the first mode."""
+    model, x = _model(dtype=jnp.float32), jnp.arange(4.0, dtype=jnp.float32)
+    in_64 = _program_cache.call(_program, model, x, scale=2.0)
+    with jax.enable_x64(False):
+        in_32 = _program_cache.call(_program, model, x, scale=2.0)
+    assert len(_saved(folder)) == 2
+    assert in_32["y"].dtype == in_64["y"].dtype == jnp.float32
+    np.testing.assert_allclose(in_32["y"], in_64["y"], rtol=1e-6)
 
 
 def test_torn_program_file_is_replaced(folder):

@@ -169,6 +169,7 @@ def test_fit_skeleton_reports_the_refit_and_accepts_the_paper_mode():
         jaxskel.fit_skeleton(trial, 3, joint_centres="fixed")
 
 
+@pytest.mark.usefixtures("float64")  # private JAX functions, as anchored_centres runs them
 def test_one_problem_per_call_gives_the_batched_answers(monkeypatch):
     """On a CPU each (joint, anchor) problem is its own call, since a vmapped while loop
     charges every member its slowest member's steps; the answers must be the batched

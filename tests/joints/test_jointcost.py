@@ -18,6 +18,11 @@ from scipy.spatial.transform import Rotation
 from jaxskel import DegenerateMotionError, InputError
 from jaxskel.joints import solve_joint, solve_joints
 
+# Private parts of the solver are checked against jax.hessian / jax.grad, and derivatives
+# against finite differences, in the caller's own traces, whose precision is the caller's:
+# these tests run in float64, as jaxskel's public functions and a float64 user do.
+pytestmark = pytest.mark.usefixtures("float64")
+
 NOISE = 1e-3
 FRAMES = 400
 

@@ -5,10 +5,15 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from test_jointcost import _rotations, pair, rmse
 
 from jaxskel.joints import solve_joint
 from jaxskel.joints._cost_init import consistency_start
+
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
 
 
 def _start(markers, mask=None):

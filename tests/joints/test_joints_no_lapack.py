@@ -4,8 +4,11 @@ plain-XLA linear algebra of jaxskel._math.linalg (tested there) and must stay fr
 
 import jax
 import jax.numpy as jnp
+import pytest
 
-import jaxskel  # noqa: F401  (x64)
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
 
 
 def test_joint_solver_uses_no_lapack_custom_call():

@@ -12,6 +12,10 @@ from jaxskel.joints import PoseExchange
 from jaxskel.joints._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
 from jaxskel.joints._topology import MIN_PAIR_FRAMES
 
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
+
 
 @pytest.fixture(scope="module")
 def body():

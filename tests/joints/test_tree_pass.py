@@ -18,6 +18,7 @@ def body_fit():
     return trial, truth, jaxskel.fit_skeleton(trial, rigid=False, ik=False)
 
 
+@pytest.mark.usefixtures("float64")  # private JAX functions, as fit_topology runs them
 def test_tree_pass_tolerance_matches_a_tight_solve(body_fit):
     """The full-frame pass stops at TREE_RTOL/TREE_ATOL instead of the solver's float64
     defaults (1e-10, 1 nm). On the same warm-started problem, a tight solve must find

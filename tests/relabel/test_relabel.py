@@ -120,6 +120,7 @@ def test_invariant_to_label_order_and_rigid_motion(relabelled_body):
     assert partition(moved.labels, moved_mapping.physical) == partition(trial.labels, mapping.physical)
 
 
+@pytest.mark.usefixtures("float64")  # a private JAX function, as its public callers run it
 def test_sampled_distance_matches_brute_force():
     """The tiled coarse kernel equals min over frame pairs of |x_a[i] - A_ab x_b[j]| done naively."""
     rng = np.random.default_rng(0)

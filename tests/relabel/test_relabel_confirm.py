@@ -142,6 +142,7 @@ def test_unexplained_skeleton_leaves_merges_alone(fitted_relabelled_body):
     assert merged.labels == reference.labels
 
 
+@pytest.mark.usefixtures("float64")  # a private JAX function, as its public callers run it
 def test_fragment_offsets_match_brute_force():
     rng = np.random.default_rng(0)
     f, k, s = 30, 4, 3

@@ -3,8 +3,11 @@ tests/test_linalg.py): IK chunks run on several host threads at once, and two LA
 at once deadlock XLA:CPU's thread pool."""
 
 import jax.numpy as jnp
+import pytest
 
-import jaxskel  # noqa: F401  (x64)
+# jaxskel's private JAX functions run inside the float64 scope of the public functions
+# that call them (jaxskel._runtime.precision): these tests give them the same.
+pytestmark = pytest.mark.usefixtures("float64")
 
 
 def test_ik_solver_uses_no_lapack_custom_call():

@@ -73,6 +73,7 @@ def _segment_points(offsets_m, offsets_j, marker_segment, edges, s):
 
 
 # ------------------------------------------------------------------ rigid fit
+@pytest.mark.usefixtures("float64")  # private JAX functions, as the public ones run them
 def test_marker_offsets_match_truth_up_to_the_segment_frame(fitted):
     trial, truth, _, sk, _ = fitted
     assert np.array_equal(sk.edges, truth.edges) and sk.root == truth.root
@@ -173,6 +174,7 @@ def test_loose_marker_is_flagged():
     assert sk.marker_rms[loose] > 3 * np.nanmedian(sk.marker_rms)
 
 
+@pytest.mark.usefixtures("float64")  # private JAX functions, as the public ones run them
 def test_segment_whose_markers_are_never_all_seen_together():
     """The paper aligns only frames showing all of a segment's markers. Here two thigh
     markers take turns (one hidden in the first half, the other in the second), so there
@@ -237,6 +239,7 @@ def test_fit_rigid_rejects_bad_input(seed0):
 # ------------------------------------------------------------------ kinematics
 
 
+@pytest.mark.usefixtures("float64")  # JAX arrays and traces of the test's own, compared in float64
 def test_forward_kinematics_reproduces_the_simulator():
     body = synth.random_tree(9, seed=3)
     _, truth = synth.simulate(body, "calibration", duration=0.5, seed=3)
@@ -459,6 +462,7 @@ def test_rigid_refinement_and_ik_run_one_compiled_solver(monkeypatch):
     assert len(shapes) == 2
 
 
+@pytest.mark.usefixtures("float64")  # private JAX functions, as the public ones run them
 def test_joint_centres_observed_on_the_child_or_the_parent_give_the_same_poses(seed0):
     # The refinement observes a joint centre at its child's proximal end (marker offset 0
     # on the child); that is the point the parent's joint offset puts it at, so the IK
@@ -512,6 +516,7 @@ def test_ik_rejects_wrong_markers(seed0):
             inverse_kinematics(sk, trial, **bad)
 
 
+@pytest.mark.usefixtures("float64")  # JAX arrays and traces of the test's own, compared in float64
 def test_ik_gradients_match_finite_differences():
     body = synth.full_body(seed=4)
     trial, truth = synth.simulate(body, "calibration", duration=0.2, seed=4, noise=NOISE)
