@@ -25,6 +25,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._atomic import atomic_output
+from ._bounds import LOAD_COPIES, require_memory
 from ._raw import RawRecording, TrialLike, resolve_units, zeros_to_nan
 
 __all__ = ["read_c3d", "write_c3d"]
@@ -40,6 +41,11 @@ _NUMERIC_PARAMETERS = {
     "ANALOG": ("USED", "RATE", "GEN_SCALE"),
     "ROTATION": ("USED", "RATE", "DATA_START", "RATIO"),
 }
+# Bytes ezc3d holds per point sample and per analog sample: it keeps every sample as an
+# object of its own (with ezc3d 1.7 about 210 and 18 bytes, 13 and 4.5 times their size
+# in a float file).
+_EZC3D_POINT_BYTES = 256
+_EZC3D_ANALOG_BYTES = 24
 # Header "key" byte of every C3D file (byte 2 of block 1).
 _C3D_KEY = 0x50
 # Parameter-section processor types: Intel, DEC (both little-endian words), MIPS.
@@ -184,6 +190,8 @@ def _check_layout(file: Path) -> None:
        and take frames x (4 x points + analog samples per frame) words of 4
        bytes (float files, scale < 0) or 2 bytes. (TRIAL:ACTUAL_END_FIELD is not
        used: resampled files, like biobuddy's, keep the original value.)
+    4. the memory that ezc3d and the load take for those frames must be available
+       (:func:`jaxskel.io._bounds.require_memory`).
     """
     with open(file, "rb") as handle:
         head = handle.read(512)
@@ -240,6 +248,8 @@ def _check_layout(file: Path) -> None:
             f"cannot read {file}: the file is truncated: it announces {n_frames} frames "
             f"({expected} bytes) but has {size} bytes"
         )
+    need = n_frames * (most(points) * (_EZC3D_POINT_BYTES + 3 * 8 * LOAD_COPIES) + most(analogs) * _EZC3D_ANALOG_BYTES)
+    require_memory(file, need, f"{n_frames} frames x {most(points)} points and {most(analogs)} analog samples a frame")
     for group in ("POINT", "ROTATION"):
         block = number(group, "DATA_START")
         used = number(group, "USED")

@@ -13,8 +13,10 @@ attribute ``metadata``      the trial's metadata as a JSON object
 attribute ``jaxskel_trial_version``, ``jaxskel_version``
 ==========================  ============================================
 
-Reading validates the version (a newer one is a :class:`~jaxskel.SchemaError`)
-and the shapes; anything h5py raises becomes an :class:`~jaxskel.InputError`.
+Reading validates the version (a newer one is a :class:`~jaxskel.SchemaError`),
+the shapes, and, before reading a dataset, that the file holds the data its shape
+declares (:func:`_check_stored`) and that memory suffices
+(:mod:`jaxskel.io._bounds`); anything h5py raises becomes an :class:`~jaxskel.InputError`.
 """
 
 from __future__ import annotations
@@ -29,12 +31,16 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ._atomic import atomic_output
+from ._bounds import LOAD_COPIES, check_labels, describe_bytes, require_memory
 from ._raw import UP_AXES, RawRecording, TrialLike, Units
 
 __all__ = ["TRIAL_VERSION", "read_h5", "write_h5"]
 
 #: Version of the layout above; bump it when the layout changes incompatibly.
 TRIAL_VERSION = 1
+
+#: Most a compressed dataset may expand: gzip's limit (1032:1), with a margin.
+MAX_COMPRESSION = 1100
 
 
 def write_h5(trial: TrialLike, file: Path, *, overwrite: bool = False) -> None:
@@ -62,7 +68,7 @@ def read_h5(file: Path, *, units: str | None = None) -> RawRecording:
     """Read a trial written by :func:`write_h5`."""
     if units is not None:
         raise InputError(
-            f"{file}: units= does not apply to HDF5 trials, which are always stored in metres"
+            f"{file}: --units / units= does not apply to HDF5 trials, which are always stored in metres"
         )
     try:
         h5 = h5py.File(file, "r")
@@ -101,15 +107,20 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
             raise InputError(
                 f"{file}: jaxskel trial without a '{name}' dataset; the file is damaged"
             )
-    positions = np.asarray(h5["positions"][()], dtype=np.float64)
+    # Shapes and sizes first, from the file's declarations, before anything is allocated.
+    shape, n_labels = h5["positions"].shape, h5["labels"].size
+    if len(shape) != 3 or shape[-1] != 3 or shape[1] != n_labels:
+        raise InputError(
+            f"{file}: positions have shape {shape} for {n_labels} labels; expected (frames, labels, 3)"
+        )
+    _check_stored(h5["positions"], file, f"{shape[0]} frames x {shape[1]} markers")
+    _check_stored(h5["labels"], file, f"{n_labels} labels")
+    require_memory(file, shape[0] * shape[1] * 3 * 8 * LOAD_COPIES, f"{shape[0]} frames x {shape[1]} markers")
     labels = tuple(
         v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in h5["labels"][()].ravel()
     )
-    if positions.ndim != 3 or positions.shape[-1] != 3 or positions.shape[1] != len(labels):
-        raise InputError(
-            f"{file}: positions have shape {positions.shape} for {len(labels)} labels; "
-            "expected (frames, labels, 3)"
-        )
+    check_labels(labels, file)
+    positions = np.asarray(h5["positions"][()], dtype=np.float64)
     for name in ("rate", "up_axis"):
         if name not in attrs:
             raise InputError(
@@ -135,6 +146,28 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
         source=_text(attrs.get("source", str(file))),
         provenance=metadata,
     )
+
+
+def _check_stored(dataset: h5py.Dataset, file: Path, declared: str) -> None:
+    """InputError unless the file holds the data that ``dataset``'s shape declares.
+
+    A dataset's shape is a declaration: HDF5 returns its fill value for every element
+    never written, so an 8 KB file can declare gigabytes. Its stored bytes must cover
+    its size, or, compressed, come within :data:`MAX_COMPRESSION` of it, and lie within
+    the file.
+    """
+    size = int(dataset.size) * int(dataset.id.get_type().get_size())
+    stored = int(dataset.id.get_storage_size())
+    compressed = dataset.id.get_create_plist().get_nfilters() > 0
+    reach = stored * (MAX_COMPRESSION if compressed else 1)
+    if size > reach or stored > file.stat().st_size:
+        holds = "no data for it" if stored == 0 else f"{describe_bytes(stored)} of data for it" + (
+            f" (compressed: at most {describe_bytes(reach)} once expanded)" if compressed else ""
+        )
+        raise InputError(
+            f"cannot read {file}: /{dataset.name.lstrip('/')} declares {declared} ({describe_bytes(size)}) "
+            f"but the file holds {holds}; the file is damaged or truncated"
+        )
 
 
 def _text(value: Any) -> str:

@@ -30,7 +30,7 @@ import numpy as np
 
 from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
 from ..clean import CleaningReport, Lowpassed, check_cutoff, clean, lowpass_markers
-from ..io import Trial, median_extent
+from ..io import Trial, median_extent, units_problem
 from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
 from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
 from ..result import SkeletonResult, nonrigid_text
@@ -55,26 +55,15 @@ __all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units"]
 def check_units(trial: Trial) -> None:
     """Raise :class:`InputError` when positions are clearly not in metres.
 
-    A human or a lab linkage spans centimetres to a few metres per frame. The
-    median over frames of the body's span (the same measure the file readers use
-    to guess missing units, :func:`jaxskel.io.median_extent`) must lie in
-    [2 cm, 40 m]; outside it the data are almost surely millimetres read as
-    metres (or similar).
+    The median over frames of the body's span must lie in
+    :data:`jaxskel.io.PLAUSIBLE_SPAN` (2 cm to 40 m); the message says what to do
+    for where the positions came from (:func:`jaxskel.io.units_problem`).
     """
-    extent = median_extent(np.asarray(trial.positions))
-    name = trial.source or "trial"
-    if extent is None:
-        raise InputError(f"{name}: no frame has two markers present; there is nothing to fit")
-    if extent > 40.0:
-        raise InputError(
-            f"{name}: the markers span {extent:.0f} units; positions look like millimetres, not metres. "
-            "Load files with jaxskel.load (it converts units) or divide by 1000."
-        )
-    if extent < 0.02:
-        raise InputError(
-            f"{name}: the markers span only {extent:.2g} units; positions do not look like metres "
-            "(kilometres?). Convert to metres first."
-        )
+    if median_extent(np.asarray(trial.positions)) is None:
+        raise InputError(f"{trial.source or 'trial'}: no frame has two markers present; there is nothing to fit")
+    problem = units_problem(trial)
+    if problem is not None:
+        raise InputError(problem)
 
 
 def as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
