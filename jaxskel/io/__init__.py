@@ -14,6 +14,7 @@ from ._trial import Trial, rotation_between_axes
 # its private modules); not public API.
 from ._atomic import atomic_output, input_sources, refuse_input
 from ._h5_values import put
+from ._load import check_load_arguments
 from ._raw import median_extent
 from ._span import PLAUSIBLE_SPAN, units_problem
 

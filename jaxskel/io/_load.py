@@ -157,15 +157,21 @@ def load(
         raise InputError(f"cannot read {file}: not a regular file")
     if file.stat().st_size == 0:
         raise InputError(f"cannot read {file}: the file is empty")
-    if units is not None:
-        unit_scale(units, file)  # validate early, with a helpful message
-    if up_axis is not None and up_axis not in UP_AXES:
-        raise InputError(f"up_axis must be one of {', '.join(UP_AXES)} (--up-axis on the command line); got {up_axis!r}")
+    check_load_arguments(units, up_axis)  # early, with a helpful message
 
     raw = _read_raw(fmt, file, units)
     if raw.units.note is not None:
         warnings.warn(raw.units.note, UnitsWarning, stacklevel=2)
     return _to_trial(raw, file, fmt, drop_unlabeled, drop_non_markers, up_axis)
+
+
+def check_load_arguments(units: str | None, up_axis: str | None) -> None:
+    """InputError for a ``units`` or ``up_axis`` that :func:`load` would refuse (for
+    callers that load later, as :func:`jaxskel.fit_batch` does)."""
+    if units is not None:
+        unit_scale(units, Path())
+    if up_axis is not None and up_axis not in UP_AXES:
+        raise InputError(f"up_axis must be one of {', '.join(UP_AXES)} (--up-axis on the command line); got {up_axis!r}")
 
 
 def save_trial(trial: Trial, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:

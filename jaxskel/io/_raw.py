@@ -173,7 +173,7 @@ def cut_short(lengths: np.ndarray, offset: int, n_points: int) -> dict[int, str]
     """
     longest = int(lengths.max()) if lengths.size else 0
     return {
-        m: "no data row reaches its columns (every row ends before them)"
+        m: "every data row ends before its columns"
         for m in range(n_points)
         if longest < offset + 3 * (m + 1)
     }

@@ -59,7 +59,7 @@ def load_report(metadata: Mapping[str, Any]) -> list[str]:
     if short:
         lines.append(
             f"{_count(short, 'data row')} end{'s' if short == 1 else ''} before the last marker's columns "
-            "(the markers after the end are missing in those frames)"
+            "(the markers past the end are missing in those frames)"
         )
     return lines
 

@@ -27,7 +27,7 @@ PLAUSIBLE_SPAN = (0.02, 40.0)
 
 # The span of a body, for naming the likely unit (metres): a hand to a few people.
 _BODY_SPAN = (0.1, 10.0)
-# Units offered as the likely one, in order of preference on a tie.
+# Units a file's values may be offered in.
 _LIKELY_UNITS = ("mm", "cm", "m", "in")
 
 
@@ -40,51 +40,51 @@ def units_problem(trial: Any) -> str | None:
     low, high = PLAUSIBLE_SPAN
     if extent is None or low <= extent <= high:
         return None
-    name = trial.source or "the trial"
-    too = "large" if extent > high else "small"
-    head = (
-        f"{name}: the markers span {_length(extent)} per frame, too {too} for a body or a lab linkage "
-        f"({_length(low)} to {_length(high)}), so the positions are not in the unit they were read as"
-    )
     metadata = trial.metadata
     file = str(metadata.get("file", ""))
+    name = trial.source or file or "the trial"
+    head = (
+        f"{name}: the markers span {_length(extent)} per frame, too {'large' if extent > high else 'small'} "
+        f"for a body or a lab linkage ({_length(low)} to {_length(high)})"
+    )
     read_as = str(metadata.get("original_units", "")).strip()
     key = read_as.lower().replace(".", "")
     if file and Path(file).suffix.lower() in (".h5", ".hdf5"):
-        factor = _likely(extent, {"mm": 1e-3, "cm": 1e-2})
-        scale = f"scale them (trial.replace(positions=trial.positions * {factor[1]:g})) and " if factor else "fix them and "
-        return f"{head}. An HDF5 trial holds metres as it was saved; it was saved with positions in another unit: " \
-               f"{scale}save it again"
+        likely = _likely(extent, {"mm": 1e-3, "cm": 1e-2})
+        fix = f"scale them (trial.replace(positions=trial.positions * {likely[1]:g}))" if likely else "convert them"
+        return (
+            f"{head}. An HDF5 trial holds the positions as they were saved, in metres; these were saved in "
+            f"another unit: {fix} and save the trial again"
+        )
     if file and key in UNIT_SCALES:
         raw_span = extent / UNIT_SCALES[key]
         how = {
-            "file": f"the file states {read_as}",
-            "assumed": f"the file states no unit and {read_as} was assumed",
-            "argument": f"given as --units {read_as} / units={read_as!r}",
-        }.get(metadata.get("units_source"), f"read as {read_as}")
-        likely = _likely(raw_span, {u: UNIT_SCALES[u] for u in _LIKELY_UNITS if UNIT_SCALES[u] != UNIT_SCALES[key]})
+            "file": f"as the file states {read_as}",
+            "assumed": f"the file states no unit, and {read_as} was assumed",
+            "argument": f"as given by --units {read_as} / units={read_as!r}",
+        }.get(metadata.get("units_source"), f"as {read_as}")
+        head = f"{head}: its values were read as {_unit_name(read_as)} ({how})"
+        scales = {u: UNIT_SCALES[u] for u in _LIKELY_UNITS if UNIT_SCALES[u] != UNIT_SCALES[key]}
+        likely = _likely(raw_span, scales)
         if likely is None:
-            return (
-                f"{head} ({how}), and no length unit makes its values a body: check the file "
-                f"(its values span {raw_span:.3g} per frame)"
-            )
+            return f"{head}, and no length unit makes them a body (they span {raw_span:.3g} per frame): check the file"
         unit = likely[0]
         return (
-            f"{head} ({how}); they look like {_unit_name(unit)}. Give the unit: --units {unit} on the command line "
+            f"{head}, but they look like {_unit_name(unit)}. Give the unit: --units {unit} on the command line "
             f"(jaxskel fit, fit-batch, info), or jaxskel.load(path, units={unit!r}) in Python"
         )
     # Built in Python: positions must be metres.
     likely = _likely(extent, {"mm": 1e-3, "cm": 1e-2})
     if likely is None:
         return (
-            f"{head}. Trial positions are metres; convert them to metres, or, for a file, load it with "
-            "jaxskel.load(path, units=...) (it converts the file's unit)"
+            f"{head}. Trial positions are metres: convert them; for a file, jaxskel.load(path, units=...) "
+            "converts its unit"
         )
     unit, factor = likely
     return (
         f"{head}: they look like {_unit_name(unit)}. Trial positions are metres: multiply them by {factor:g} "
-        f"(trial.replace(positions=trial.positions * {factor:g})), or load the file with "
-        f"jaxskel.load(path, units={unit!r}) (it converts the file's unit)"
+        f"(trial.replace(positions=trial.positions * {factor:g})); for a file, jaxskel.load(path, units={unit!r}) "
+        "converts its unit"
     )
 
 
@@ -96,7 +96,8 @@ def _likely(span: float, scales: dict[str, float]) -> tuple[str, float] | None:
 
 
 def _unit_name(unit: str) -> str:
-    return {"mm": "millimetres", "cm": "centimetres", "m": "metres", "in": "inches"}.get(unit, unit)
+    key = unit.strip().lower().replace(".", "")
+    return {"mm": "millimetres", "cm": "centimetres", "dm": "decimetres", "m": "metres", "in": "inches"}.get(key, unit)
 
 
 def _length(metres: float) -> str:

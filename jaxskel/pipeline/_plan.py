@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -49,7 +50,7 @@ from ._warnings import (
     warn_untested,
 )
 
-__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units"]
+__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_marker_sets", "check_units"]
 
 
 def check_units(trial: Trial) -> None:
@@ -64,6 +65,41 @@ def check_units(trial: Trial) -> None:
     problem = units_problem(trial)
     if problem is not None:
         raise InputError(problem)
+
+
+# Vicon's names for trajectories that were never labelled: they differ between recordings.
+_UNLABELED = re.compile(r"^\*\d+$")
+
+
+def check_marker_sets(trials: Sequence[Trial]) -> None:
+    """Raise :class:`InputError` when trials fitted together do not share their markers.
+
+    Markers are matched across trials by label. A trial may lack markers another has (a
+    motion trial without the calibration trial's extra markers, a marker lost), as long
+    as one trial holds every labelled marker of the others; otherwise the labels name
+    different markers, or the same markers differently, and the fit would end in a
+    forest of segments never seen together. Unlabelled ``*N`` trajectories are left out.
+    """
+    if len(trials) < 2:
+        return
+    named = [{lab for lab in t.labels if not _UNLABELED.match(lab)} for t in trials]
+    union = set().union(*named)
+    if any(markers == union for markers in named):
+        return
+    order = list(dict.fromkeys(lab for t in trials for lab in t.labels if lab in union))
+    names = [str(t.metadata.get("file") or t.source or f"trial {i + 1}") for i, t in enumerate(trials)]
+    parts = []
+    for i, markers in enumerate(named):
+        lacks = [lab for lab in order if lab not in markers]
+        if lacks:
+            holders = [names[j] for j, other in enumerate(named) if j != i and other & set(lacks)]
+            shown = ", ".join(lacks[:8]) + (f" and {len(lacks) - 8} more" if len(lacks) > 8 else "")
+            parts.append(f"{names[i]} lacks {shown} (in {', '.join(holders)})")
+    raise InputError(
+        "the trials fitted together have different markers (they are matched by label, and no trial has all "
+        f"of them): {'; '.join(parts)}. Fit them separately, rename the markers to match, or keep the markers "
+        "they share (Trial.select_markers)"
+    )
 
 
 def as_trials(trial_or_trials: Trial | Sequence[Trial]) -> list[Trial]:
@@ -142,6 +178,7 @@ class StagePlan:
         trials = as_trials(trial_or_trials)
         for t in trials:
             check_units(t)
+        check_marker_sets(trials)
         combined = combine_trials(trials)
         bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
         check_cutoff(o.motion.lowpass, rate=combined.rate, allow_none=True)  # below the Nyquist frequency
