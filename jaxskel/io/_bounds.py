@@ -73,15 +73,16 @@ def available_memory() -> int | None:
     return min(room) if room else None
 
 
-def require_memory(file: Path, need: int, declared: str) -> None:
+def require_memory(file: Path, need: int, what: str) -> None:
     """InputError when reading ``file`` needs ``need`` bytes and fewer are available.
 
-    ``declared`` says what the file declares (``"4200000 frames x 14 markers"``).
+    ``what`` says what the file declares or is, as a verb phrase
+    (``"declares 4200000 frames x 14 markers"``, ``"is 3.2 GB of text"``).
     """
     free = available_memory()
     if free is not None and need > free:
         raise InputError(
-            f"cannot read {file}: it declares {declared}, which takes about {describe_bytes(need)} of memory "
+            f"cannot read {file}: it {what}, which takes about {describe_bytes(need)} of memory "
             f"to read, but only {describe_bytes(free)} is available; split the recording or free memory"
         )
 

@@ -249,7 +249,8 @@ def _check_layout(file: Path) -> None:
             f"({expected} bytes) but has {size} bytes"
         )
     need = n_frames * (most(points) * (_EZC3D_POINT_BYTES + 3 * 8 * LOAD_COPIES) + most(analogs) * _EZC3D_ANALOG_BYTES)
-    require_memory(file, need, f"{n_frames} frames x {most(points)} points and {most(analogs)} analog samples a frame")
+    declared = f"declares {n_frames} frames x {most(points)} points and {most(analogs)} analog samples a frame"
+    require_memory(file, need, declared)
     for group in ("POINT", "ROTATION"):
         block = number(group, "DATA_START")
         used = number(group, "USED")

@@ -89,7 +89,7 @@ def read_csv(file: Path, *, units: str | None = None) -> RawRecording:
         raise InputError(f"cannot read {file}: the file is truncated: the last row is cut off")
     if not rows:
         raise InputError(f"{file} contains no frames")
-    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"{len(rows)} frames x {n_markers} markers")
+    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"holds {len(rows)} frames x {n_markers} markers")
     table, lengths = parse_table(rows, width, file, lambda _, line: line.split(","))
 
     rate = _float(header.get("point frequency"))

@@ -115,7 +115,8 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
         )
     _check_stored(h5["positions"], file, f"{shape[0]} frames x {shape[1]} markers")
     _check_stored(h5["labels"], file, f"{n_labels} labels")
-    require_memory(file, shape[0] * shape[1] * 3 * 8 * LOAD_COPIES, f"{shape[0]} frames x {shape[1]} markers")
+    declared = f"declares {shape[0]} frames x {shape[1]} markers"
+    require_memory(file, shape[0] * shape[1] * 3 * 8 * LOAD_COPIES, declared)
     labels = tuple(
         v.decode("utf-8") if isinstance(v, bytes) else str(v) for v in h5["labels"][()].ravel()
     )

@@ -189,7 +189,7 @@ def zeros_to_nan(x: np.ndarray) -> np.ndarray:
 def read_text(file: Path) -> str:
     """Text of a file (UTF-8, else Latin-1); InputError for binary data or too little memory."""
     size = file.stat().st_size
-    require_memory(file, size * TEXT_COPIES, f"{describe_bytes(size)} of text")
+    require_memory(file, size * TEXT_COPIES, f"is {describe_bytes(size)} of text")
     data = file.read_bytes()
     if b"\x00" in data:
         raise InputError(f"cannot read {file}: it holds binary data, not text")

@@ -84,7 +84,7 @@ def read_trc(file: Path, *, units: str | None = None) -> RawRecording:
             f"cannot read {file}: the file is truncated: the last row (line {rows[-1][0]}) "
             "is cut off"
         )
-    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"{len(rows)} frames x {n_markers} markers")
+    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"holds {len(rows)} frames x {n_markers} markers")
 
     def cells(line_no: int, line: str) -> list[str]:
         if "\t" in line:
