@@ -22,6 +22,8 @@ declares (:func:`_check_stored`) and that memory suffices
 from __future__ import annotations
 
 import json
+import mmap
+import struct
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -70,6 +72,7 @@ def read_h5(file: Path, *, units: str | None = None) -> RawRecording:
         raise InputError(
             f"{file}: --units / units= does not apply to HDF5 trials, which are always stored in metres"
         )
+    _check_global_heaps(file)
     try:
         h5 = h5py.File(file, "r")
     except Exception as err:  # h5py raises OSError (and others) for non-HDF5/damaged files
@@ -113,6 +116,8 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
         raise InputError(
             f"{file}: positions have shape {shape} for {n_labels} labels; expected (frames, labels, 3)"
         )
+    _check_type(h5["positions"], (h5py.h5t.FLOAT, h5py.h5t.INTEGER), "numbers", file)
+    _check_type(h5["labels"], (h5py.h5t.STRING,), "text", file)
     _check_stored(h5["positions"], file, f"{shape[0]} frames x {shape[1]} markers")
     _check_stored(h5["labels"], file, f"{n_labels} labels")
     declared = f"declares {shape[0]} frames x {shape[1]} markers"
@@ -147,6 +152,59 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
         source=_text(attrs.get("source", str(file))),
         provenance=metadata,
     )
+
+
+def _check_global_heaps(file: Path) -> None:
+    """InputError for a damaged global heap collection, before HDF5 reads one.
+
+    Variable-length strings (the labels, the text attributes) live in global heap
+    collections: ``GCOL``, version 1, 3 reserved bytes, the collection's size (8 bytes),
+    then objects of a 2-byte index, a reference count, 4 reserved bytes, an 8-byte size
+    and the data padded to 8 bytes; index 0 is the free space, which runs to the end
+    (its size counts its own header).
+    libhdf5 trusts those sizes: one damaged size made it corrupt its memory, then hang
+    or crash the interpreter. So every collection must walk exactly to its end.
+    (A match of the signature that is not followed by a plausible header is data.)
+    """
+    with open(file, "rb") as handle:
+        try:
+            data = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):  # not mappable: HDF5 opens it, or says why not
+            return
+    with data:
+        at = data.find(b"GCOL")
+        while at >= 0:
+            head = data[at : at + 16]
+            if len(head) == 16 and head[4] == 1 and head[5:8] == b"\0\0\0":
+                (size,) = struct.unpack("<Q", head[8:16])
+                if 4096 <= size <= len(data) - at and not _heap_objects_fit(data, at, size):
+                    raise InputError(
+                        f"cannot read {file}: the global heap at byte {at} (the labels and text attributes) is "
+                        "damaged"
+                    )
+            at = data.find(b"GCOL", at + 4)
+
+
+def _heap_objects_fit(data: mmap.mmap, start: int, size: int) -> bool:
+    """Whether the objects of the collection at ``start`` end exactly at its end."""
+    pos, end = start + 16, start + size
+    while pos + 16 <= end:
+        index, _, _, length = struct.unpack("<HHIQ", data[pos : pos + 16])
+        if index == 0:  # the free space (its size counts its header): the rest of the collection
+            return pos + length == end
+        pos += 16 + (length + 7) // 8 * 8
+    return pos == end or 0 <= end - pos < 16
+
+
+def _check_type(dataset: h5py.Dataset, classes: tuple[int, ...], what: str, file: Path) -> None:
+    """InputError unless ``dataset``'s stored type is of one of ``classes`` (HDF5 type
+    classes): reading a damaged type (a variable-length sequence where text was written)
+    can crash the HDF5 library."""
+    if dataset.id.get_type().get_class() not in classes:
+        raise InputError(
+            f"cannot read {file}: /{dataset.name.lstrip('/')} does not hold {what} "
+            f"({type(dataset.id.get_type()).__name__}); the file is damaged"
+        )
 
 
 def _check_stored(dataset: h5py.Dataset, file: Path, declared: str) -> None:
