@@ -93,7 +93,7 @@ def check_labels(labels: Sequence[str], file: Path) -> None:
         if len(label) > MAX_LABEL_CHARS:
             raise InputError(
                 f"cannot read {file}: label {i + 1} ({label[:20]!r}...) is {len(label)} characters long; "
-                f"a marker label has at most {MAX_LABEL_CHARS}, so the file is damaged or not a marker recording"
+                f"a marker label has at most {MAX_LABEL_CHARS} characters, so the file is damaged or not a marker recording"
             )
 
 

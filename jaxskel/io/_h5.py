@@ -33,7 +33,7 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ._atomic import atomic_output
-from ._bounds import LOAD_COPIES, check_labels, describe_bytes, require_memory
+from ._bounds import LOAD_COPIES, MAX_LABEL_CHARS, check_labels, describe_bytes, require_memory
 from ._raw import UP_AXES, RawRecording, TrialLike, Units
 
 __all__ = ["TRIAL_VERSION", "read_h5", "write_h5"]
@@ -120,6 +120,7 @@ def _parse(h5: h5py.File, file: Path) -> RawRecording:
     _check_type(h5["labels"], (h5py.h5t.STRING,), "text", file)
     _check_stored(h5["positions"], file, f"{shape[0]} frames x {shape[1]} markers")
     _check_stored(h5["labels"], file, f"{n_labels} labels")
+    _check_label_lengths(h5["labels"], file)
     declared = f"declares {shape[0]} frames x {shape[1]} markers"
     require_memory(file, shape[0] * shape[1] * 3 * 8 * LOAD_COPIES, declared)
     labels = tuple(
@@ -194,6 +195,34 @@ def _heap_objects_fit(data: mmap.mmap, start: int, size: int) -> bool:
             return pos + length == end
         pos += 16 + (length + 7) // 8 * 8
     return pos == end or 0 <= end - pos < 16
+
+
+def _check_label_lengths(dataset: h5py.Dataset, file: Path) -> None:
+    """InputError for a variable-length label declared longer than a label can be.
+
+    Each element of a contiguous variable-length string dataset is a heap reference:
+    the string's length in bytes (4), its collection's address (8) and its index (4).
+    libhdf5 allocates the declared length before it finds the string, so a damaged
+    length takes gigabytes; the lengths are read from the file and checked first.
+    """
+    tid = dataset.id.get_type()
+    layout = dataset.id.get_create_plist().get_layout()
+    offset = dataset.id.get_offset()
+    if not (isinstance(tid, h5py.h5t.TypeStringID) and tid.is_variable_str()) or layout != h5py.h5d.CONTIGUOUS \
+            or offset is None or dataset.size == 0:
+        return
+    with open(file, "rb") as handle:
+        handle.seek(offset)
+        refs = handle.read(16 * dataset.size)
+    if len(refs) < 16 * dataset.size:
+        raise InputError(f"cannot read {file}: /labels lies past the end of the file; the file is damaged or truncated")
+    lengths = struct.unpack(f"<{dataset.size}Q", b"".join(refs[k : k + 4] + b"\0\0\0\0" for k in range(0, len(refs), 16)))
+    for i, n in enumerate(lengths):
+        if n > 4 * MAX_LABEL_CHARS:  # UTF-8: at most 4 bytes a character
+            raise InputError(
+                f"cannot read {file}: label {i + 1} is {n} bytes long; a marker label has at most "
+                f"{MAX_LABEL_CHARS} characters, so the file is damaged or not a marker recording"
+            )
 
 
 def _check_type(dataset: h5py.Dataset, classes: tuple[int, ...], what: str, file: Path) -> None:

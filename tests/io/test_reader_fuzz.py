@@ -22,7 +22,6 @@ import struct
 import subprocess
 import sys
 import textwrap
-from collections.abc import Callable
 from pathlib import Path
 
 import ezc3d
@@ -35,7 +34,7 @@ from jaxskel import Trial, save_trial
 REPO = Path(__file__).resolve().parents[2]
 SEED = 45
 #: Mutants per base file (five bases).
-PER_BASE = 70
+PER_BASE = 150
 #: Seconds one load may take.
 LOAD_TIMEOUT_S = 5
 #: Address space a worker may add to what it holds after its imports.
@@ -244,7 +243,13 @@ def _h5_absurd(rng: random.Random, base: Path, path: Path) -> str:
     path.write_bytes(base.read_bytes())
     with h5py.File(base, "r") as src:
         positions, labels = src["positions"][()], src["labels"][()]
-    kind = rng.randrange(9)
+    kind = rng.randrange(10)
+    if kind == 9:  # a byte of the global heap (the labels' and text attributes' strings)
+        data = bytearray(base.read_bytes())
+        at = data.find(b"GCOL") + rng.randrange(16, 320)
+        data[at] = rng.choice((0, 1, 2, 0x80, 0xFF))
+        path.write_bytes(bytes(data))
+        return f"global heap byte {at} = {data[at]}"
     with h5py.File(path, "a") as h5:
         if kind == 0:  # shape far beyond the data written
             n = rng.choice((4_200_000, 2**31, 2**40))
@@ -263,10 +268,12 @@ def _h5_absurd(rng: random.Random, base: Path, path: Path) -> str:
             return "long fixed-width labels"
         if kind == 3:
             del h5["positions"]
-            h5["positions"] = rng.choice((
-                positions[..., 0], positions.astype("f2"), positions.astype("i1"), np.zeros((0, 6, 3)),
-                np.full(positions.shape, 1e308) * 10, positions.reshape(-1, 6, 3, 1), np.array([b"x"] * 4),
-            ))
+            with np.errstate(all="ignore"):  # the casts overflow on purpose
+                odd = (
+                    positions[..., 0], positions.astype("f2"), positions.astype("i1"), np.zeros((0, 6, 3)),
+                    np.full(positions.shape, 1e308) * 10, positions.reshape(-1, 6, 3, 1), np.array([b"x"] * 4),
+                )
+            h5["positions"] = rng.choice(odd)
             return "positions of another shape or type"
         if kind == 4:
             key = rng.choice(("rate", "up_axis", "jaxskel_trial_version", "metadata", "source"))
@@ -291,6 +298,15 @@ def _h5_absurd(rng: random.Random, base: Path, path: Path) -> str:
         return "attributes removed"
 
 
+def _absurd(base: str, rng: random.Random, data: bytes) -> tuple[bytes, str]:
+    """An absurd header value of the format of ``base`` (not HDF5: :func:`_h5_absurd`)."""
+    if base.startswith("c3d"):
+        return _c3d_absurd(rng, data)
+    if base == "trc":
+        return _text_absurd(rng, data, 5, "\t")
+    return _text_absurd(rng, data, 8, ",")
+
+
 # ------------------------------------------------------------------ the test
 @pytest.fixture(scope="module")
 def mutants(tmp_path_factory) -> list[tuple[Path, str]]:
@@ -310,20 +326,10 @@ def mutants(tmp_path_factory) -> list[tuple[Path, str]]:
         suffix = base.suffix
         for k in range(PER_BASE):
             path = root / f"{name}_{k}{suffix}"
-            absurd: Callable[[], tuple[bytes, str]] | None = None
-            if name.startswith("c3d"):
-                absurd = lambda: _c3d_absurd(rng, data)  # noqa: E731
-            elif name == "trc":
-                absurd = lambda: _text_absurd(rng, data, 5, "\t")  # noqa: E731
-            elif name == "csv":
-                absurd = lambda: _text_absurd(rng, data, 8, ",")  # noqa: E731
-            if name == "h5" and k % 2 == 0:
+            if k % 2 == 0 and name == "h5":
                 how = _h5_absurd(rng, base, path)
-            elif absurd is not None and k % 2 == 0:
-                mutant, how = absurd()
-                path.write_bytes(mutant)
             else:
-                mutant, how = rng.choice(_BYTE_MUTATIONS)(rng, data)
+                mutant, how = _absurd(name, rng, data) if k % 2 == 0 else rng.choice(_BYTE_MUTATIONS)(rng, data)
                 path.write_bytes(mutant)
             out.append((path, f"{name} #{k}: {how}"))
     return out
