@@ -157,12 +157,14 @@ def _parser() -> argparse.ArgumentParser:
 
 def load_options(parser: argparse.ArgumentParser) -> None:
     """``--units`` and ``--up-axis``: how the recordings are read (:func:`jaxskel.load`'s ``units=``, ``up_axis=``)."""
-    from .io import UP_AXES
-    from .io._raw import UNIT_SCALES
+    from ._errors import InputError
+    from .io import UP_AXES, check_load_arguments
 
     def unit(text: str) -> str:
-        if text.strip().lower().replace(".", "") not in UNIT_SCALES:
-            raise argparse.ArgumentTypeError(f"unknown length unit {text!r}; expected one of {', '.join(UNIT_SCALES)}")
+        try:
+            check_load_arguments(text, None)
+        except InputError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
         return text
 
     group = parser.add_argument_group("reading the recordings")

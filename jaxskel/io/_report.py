@@ -56,7 +56,7 @@ def load_report(metadata: Mapping[str, Any]) -> list[str]:
         parts = [f"{_names(labels)} ({reason})" for reason, labels in by_reason.items()]
         lines.append(f"{_count(len(empty), 'marker')} without a sample, dropped by the fit: {'; '.join(parts)}")
     short = int(metadata.get("short_rows") or 0)
-    if short:
+    if short and not str(metadata.get("file", "")).lower().endswith((".h5", ".hdf5")):  # a saved trial has no rows
         lines.append(
             f"{_count(short, 'data row')} end{'s' if short == 1 else ''} before the last marker's columns "
             "(the markers past the end are missing in those frames)"

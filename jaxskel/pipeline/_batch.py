@@ -287,6 +287,7 @@ def fit_batch(
     if scheduler is not None and out is None:
         raise InputError("fit_batch with a scheduler needs outdir: the workers write the result files there")
     options = resolve_options(options, settings)
+    check_load_arguments(units, up_axis)
     if int(batch_size) < 1 or int(jobs) < 1:
         raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
     if out is not None:
@@ -294,7 +295,6 @@ def fit_batch(
             raise InputError(f"{out} exists and is not a folder")
         out.mkdir(parents=True, exist_ok=True)
     reading = tuple((k, v) for k, v in (("units", units), ("up_axis", up_axis)) if v is not None)
-    check_load_arguments(units, up_axis)
     items = [dataclasses.replace(item, load_options=reading) for item in _resolve_items(trials, out, names, subjects)]
     specs = _normalise_specs(bones)
     keep = (out is None) if keep_results is None else bool(keep_results)

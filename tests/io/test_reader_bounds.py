@@ -25,6 +25,8 @@ from jaxskel import InputError, Trial, load, save_trial
 from jaxskel.io import _bounds
 
 REPO = Path(__file__).resolve().parents[2]
+# The children read /proc/self/status and limit their address space (Linux).
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs /proc and RLIMIT_AS (Linux)")
 
 # The child loads one small file first (imports, lazy modules), then limits its address
 # space to what it uses plus LIMIT_MB, then loads the file under test and reports.
@@ -115,14 +117,31 @@ def test_h5_compressed_positions_may_expand_only_as_far_as_gzip_can(tmp_path, wa
 
 @pytest.mark.parametrize("suffix", [".h5", ".trc"])
 def test_a_50_mb_label_is_refused_in_bounded_memory(tmp_path, warm, suffix):
-    labels = [f"M{i}" for i in range(14)]
-    labels[3] = "L" * 50_000_000
-    path = save_trial(_body().replace(labels=tuple(labels)), tmp_path / f"label{suffix}")
+    path = save_trial(_body(), tmp_path / f"label{suffix}")
+    if suffix == ".trc":  # the name row: Frame#, Time, then a name every third cell
+        lines = path.read_text().split("\n")
+        lines[3] = lines[3].replace("\tM3\t", "\t" + "L" * 50_000_000 + "\t")
+        path.write_text("\n".join(lines))
+    else:
+        with h5py.File(path, "a") as h5:
+            labels = [f"M{i}" for i in range(14)]
+            labels[3] = "L" * 50_000_000
+            del h5["labels"]
+            h5.create_dataset("labels", data=labels, dtype=h5py.string_dtype())
+    assert path.stat().st_size > 50_000_000
     out = _load_in_child(path, warm)
     assert out.get("error") == "InputError", out
     assert re.search(r"label 4 (\('LLLLLLLLLLLLLLLLLLLL'...\) is 50000000 characters|is 50000000 bytes) long; a marker "
                      r"label has at most 1024 characters", out["message"]), out
     assert out["peak_growth_mb"] < 8 * 50, out  # the file's bytes, its text and lines: not the 2.9 GB of a fit
+
+
+def test_a_trial_refuses_a_label_no_marker_has():
+    labels = [f"M{i}" for i in range(14)]
+    labels[3] = "L" * 2000
+    with pytest.raises(InputError, match=r"marker label 4 \('LLLLLLLLLLLLLLLLLLLL'...\) is 2000 characters long; "
+                                         r"labels have at most 1024"):
+        Trial(_body().positions, labels, 100.0)
 
 
 def test_a_huge_cell_in_a_text_table_is_a_bad_number_not_a_huge_array(tmp_path, warm):

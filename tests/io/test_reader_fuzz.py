@@ -32,6 +32,8 @@ import pytest
 from jaxskel import Trial, save_trial
 
 REPO = Path(__file__).resolve().parents[2]
+# The children read /proc/self/status and limit their address space (Linux).
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs /proc and RLIMIT_AS (Linux)")
 SEED = 45
 #: Mutants per base file (five bases).
 PER_BASE = 150
