@@ -389,7 +389,7 @@ def _to_trial(
     # Markers kept without a single sample: the fit's cleaning drops them, so say why now.
     never = ~(~np.isnan(positions).any(axis=-1)).any(axis=0)
     empty = {
-        label: raw.empty_reasons.get(i, "no sample in the file (missing or at 0, 0, 0 in every frame)")
+        label: raw.empty_reasons.get(i, "missing or at 0, 0, 0 in every frame")
         for label, i, gone in zip(labels, keep, never, strict=True) if gone
     }
     dropped = [raw.labels[i].strip() for i in sorted(reasons)]
