@@ -123,6 +123,7 @@ def _parser() -> argparse.ArgumentParser:
     fit.add_argument("inputs", nargs="+", type=Path, help=".c3d, .trc, .csv or .h5 recordings")
     fit.add_argument("-o", "--output", type=Path, required=True, help="result file (.h5)")
     output_options(fit)
+    load_options(fit)
     add_setting_flags(fit)
 
     demo = sub.add_parser("demo", help="fit the bundled real recording and write results")
@@ -150,15 +151,54 @@ def _parser() -> argparse.ArgumentParser:
                        help="plot the first two --bone lengths per subject (Kirk et al. 2005, Fig. 5)")
     batch.add_argument("--overwrite", action="store_true", help="fit again even where a complete result exists")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
+    load_options(batch)
     add_setting_flags(batch)
 
     info = sub.add_parser("info", help="describe a recording or a result file")
     info.add_argument("file", type=Path)
+    load_options(info)
     return p
 
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
 FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc"}
+
+
+def load_options(parser: argparse.ArgumentParser) -> None:
+    """``--units`` and ``--up-axis``: how the recordings are read (:func:`jaxskel.load`'s ``units=``, ``up_axis=``)."""
+    from ._errors import InputError
+    from .io import UP_AXES, check_load_arguments
+
+    def unit(text: str) -> str:
+        try:
+            check_load_arguments(text, None)
+        except InputError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        return text
+
+    group = parser.add_argument_group("reading the recordings")
+    group.add_argument("--units", type=unit, default=None, metavar="UNIT",
+                       help="length unit of the .c3d/.trc/.csv values (mm, cm, m, in, ...), overriding what the "
+                       "files state or the guess where they state none; HDF5 trials are always metres")
+    group.add_argument("--up-axis", dest="up_axis", choices=UP_AXES, default=None, metavar="AXIS",
+                       help=f"the vertical axis ({', '.join(UP_AXES)}; write --up-axis=-z for a negative one), "
+                       "overriding the files and the inference from the data")
+
+
+def _load_kwargs(path: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """:func:`jaxskel.load`'s ``units=`` and ``up_axis=`` from the flags (no unit for HDF5 trials: always metres)."""
+    units = getattr(args, "units", None)
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        units = None
+    return {"units": units, "up_axis": getattr(args, "up_axis", None)}
+
+
+def _print_load_report(path: Path, trial: Any) -> None:
+    """What loading dropped, renamed or found empty (:func:`jaxskel.io.load_report`), a line each."""
+    from .io import load_report
+
+    for line in load_report(trial.metadata):
+        print(f"{path}: {line}")
 
 
 def _check_outputs(inputs: list[Path], outputs: dict[str, Path | None], overwrite: bool) -> None:
@@ -273,7 +313,10 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if output.parent and not output.parent.exists():
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    trials = [jaxskel.load(p) for p in inputs]
+    trials = [jaxskel.load(p, **_load_kwargs(p, args)) for p in inputs]
+    if not quiet:
+        for path, trial in zip(inputs, trials):
+            _print_load_report(path, trial)
     result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
     extra_groups = {}
     if args.parameterize:
@@ -338,6 +381,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
         batch = jaxskel.fit_batch(
             args.directory, args.outdir, options=options_from_args(args), bones=bones, batch_size=args.batch_size,
             jobs=args.jobs, scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
+            units=args.units, up_axis=args.up_axis,
         )
     finally:
         if cluster is not None:
@@ -372,7 +416,7 @@ def _demo(args: argparse.Namespace) -> int:
     return _fit([sample_path()], outdir / "result.h5", ns)
 
 
-def _info(path: Path) -> int:
+def _info(path: Path, args: argparse.Namespace) -> int:
     import jaxskel
 
     if path.suffix.lower() in (".h5", ".hdf5"):
@@ -393,8 +437,9 @@ def _info(path: Path) -> int:
             print(f"  segments: {', '.join(r.segments.names)}")
             print(f"  groups: {', '.join(r.keys())}")
             return 0
-    trial = jaxskel.load(path)
+    trial = jaxskel.load(path, **_load_kwargs(path, args))
     print(trial)
+    _print_load_report(path, trial)
     print(f"  labels: {', '.join(trial.labels)}")
     present = trial.mask.mean(axis=0)
     gappy = [lab for lab, p in zip(trial.labels, present) if p < 1]
@@ -461,7 +506,7 @@ def _run(args: argparse.Namespace) -> int:
         if args.command == "demo":
             return _demo(args)
         if args.command == "info":
-            return _info(args.file)
+            return _info(args.file, args)
         if args.command == "fit-batch":
             return _fit_batch(args)
     except JaxskelError as exc:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import ezc3d
@@ -25,6 +26,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._atomic import atomic_output
+from ._bounds import LOAD_COPIES, describe_bytes, require_memory
 from ._raw import RawRecording, TrialLike, resolve_units, zeros_to_nan
 
 __all__ = ["read_c3d", "write_c3d"]
@@ -40,6 +42,14 @@ _NUMERIC_PARAMETERS = {
     "ANALOG": ("USED", "RATE", "GEN_SCALE"),
     "ROTATION": ("USED", "RATE", "DATA_START", "RATIO"),
 }
+# Bytes ezc3d holds per point sample and per analog sample: it keeps every sample as an
+# object of its own (with ezc3d 1.7 about 210 and 18 bytes, 13 and 4.5 times their size
+# in a float file).
+_EZC3D_POINT_BYTES = 256
+_EZC3D_ANALOG_BYTES = 24
+# ... and per rotation sample (an empty vector), plus per rotation in it (a 4 x 4 matrix).
+_EZC3D_ROTATION_BYTES = 32
+_EZC3D_MATRIX_BYTES = 320
 # Header "key" byte of every C3D file (byte 2 of block 1).
 _C3D_KEY = 0x50
 # Parameter-section processor types: Intel, DEC (both little-endian words), MIPS.
@@ -177,13 +187,19 @@ def _check_layout(file: Path) -> None:
 
     1. the 512-byte header must be there with its key byte (0x50);
     2. every parameter record must lie within the parameter section
-       (:func:`_parameter_records`), counts, scales and rates must be numbers,
-       and every DATA_START block must lie within the file;
+       (:func:`_parameter_records`), counts, scales and rates must be numbers
+       (ANALOG:SCALE and OFFSET too where there are analog data), no text
+       parameter may lack dimensions, and every DATA_START block must lie
+       within the file;
     3. the file must hold the data of every frame that the header, POINT:FRAMES
        or POINT:LONG_FRAMES announce: the data start at the header's data block
        and take frames x (4 x points + analog samples per frame) words of 4
        bytes (float files, scale < 0) or 2 bytes. (TRIAL:ACTUAL_END_FIELD is not
        used: resampled files, like biobuddy's, keep the original value.)
+    4. rotation data (the ROTATION group) must be in the file and of a plausible
+       count (:func:`_rotation_samples`);
+    5. the memory that ezc3d and the load take for those frames must be available
+       (:func:`jaxskel.io._bounds.require_memory`).
     """
     with open(file, "rb") as handle:
         head = handle.read(512)
@@ -218,6 +234,11 @@ def _check_layout(file: Path) -> None:
             raise InputError(
                 f"cannot read {file}: parameter {group}:{name} holds no number; the file is damaged"
             )
+    for (group, name), (dtype, dims, _) in records.items():
+        if dtype == -1 and not dims:  # ezc3d crashes the interpreter on these
+            raise InputError(
+                f"cannot read {file}: parameter {group}:{name} is text without dimensions; the file is damaged"
+            )
 
     def number(group: str, name: str, index: int = 0) -> float | None:
         return _record_number(records.get((group, name)), index, endian, processor)
@@ -233,6 +254,14 @@ def _check_layout(file: Path) -> None:
     def most(values: list[float | None]) -> int:
         return int(max((v for v in values if v is not None and np.isfinite(v)), default=0))
 
+    if most(analogs) > 0:  # ezc3d scales every analog sample by these, and crashes without them
+        for name in ("SCALE", "OFFSET"):
+            dtype = records.get(("ANALOG", name), (-1,))[0]
+            if dtype == -1:
+                raise InputError(
+                    f"cannot read {file}: it holds analog data but no numeric ANALOG:{name}; the file is damaged"
+                )
+
     n_frames = most(frames)
     expected = (max(data_block, 1) - 1) * 512 + n_frames * (4 * most(points) + most(analogs)) * word
     if size < expected:
@@ -240,6 +269,11 @@ def _check_layout(file: Path) -> None:
             f"cannot read {file}: the file is truncated: it announces {n_frames} frames "
             f"({expected} bytes) but has {size} bytes"
         )
+    rotation_samples = _rotation_samples(records, number, n_frames, size, head, endian, processor, file)
+    need = n_frames * (most(points) * (_EZC3D_POINT_BYTES + 3 * 8 * LOAD_COPIES) + most(analogs) * _EZC3D_ANALOG_BYTES)
+    need += rotation_samples * (_EZC3D_ROTATION_BYTES + int(number("ROTATION", "USED") or 0) * _EZC3D_MATRIX_BYTES)
+    declared = f"declares {n_frames} frames x {most(points)} points and {most(analogs)} analog samples a frame"
+    require_memory(file, need, declared)
     for group in ("POINT", "ROTATION"):
         block = number(group, "DATA_START")
         used = number(group, "USED")
@@ -248,6 +282,52 @@ def _check_layout(file: Path) -> None:
                 f"cannot read {file}: {group}:DATA_START points to block {block:.0f}, past the "
                 "end of the file; the file is damaged or truncated"
             )
+
+
+def _rotation_samples(
+    records: dict[tuple[str, str], tuple[int, tuple[int, ...], bytes]],
+    number: Callable[[str, str], float | None],
+    n_frames: int,
+    size: int,
+    head: bytes,
+    endian: str,
+    processor: int,
+    file: Path,
+) -> int:
+    """Rotation samples ezc3d makes room for (C-Motion's ROTATION group), after checking them.
+
+    ezc3d allocates frames x RATIO entries (RATIO read as a signed int16; without it,
+    ROTATION:RATE over the header's point rate), then reads ROTATION:USED rotations of
+    17 floats into each, from ROTATION:DATA_START. A file whose rotation data stop
+    short makes ezc3d abort the interpreter, and an absurd RATIO takes gigabytes
+    though no rotation is stored.
+    """
+    if not any(group == "ROTATION" and name in ("RATIO", "RATE") for group, name in records):
+        return 0
+    if ("ROTATION", "RATIO") in records:
+        ratio = number("ROTATION", "RATIO")
+        what = f"ROTATION:RATIO = {ratio:.0f}" if ratio is not None else "ROTATION:RATIO"
+    else:
+        point_rate = None if processor == 85 else struct.unpack(endian + "f", head[20:24])[0]
+        rate = number("ROTATION", "RATE")
+        ratio = rate / point_rate if rate is not None and point_rate and np.isfinite(point_rate) else None
+        what = f"ROTATION:RATE / the point rate = {ratio}"
+    if ratio is None or not np.isfinite(ratio) or not 0 <= ratio < 2**15:
+        raise InputError(f"cannot read {file}: {what} is not a number of rotation samples per frame; the file is damaged")
+    samples = n_frames * int(ratio)
+    used = int(number("ROTATION", "USED") or 0)
+    start = number("ROTATION", "DATA_START")
+    if used and (start is None or (start - 1) * 512 + samples * used * 17 * 4 > size):
+        raise InputError(
+            f"cannot read {file}: the file is truncated: its ROTATION group announces {used} rotations in "
+            f"{samples} samples ({samples * used * 68} bytes from block {start or 0:.0f}) but it has {size} bytes"
+        )
+    if samples > max(2**20, size):
+        raise InputError(
+            f"cannot read {file}: {what} announces {samples} rotation samples, more than a file of "
+            f"{describe_bytes(size)} holds; the file is damaged"
+        )
+    return samples
 
 
 def _parameter_records(
@@ -286,7 +366,10 @@ def _parameter_records(
                     dims = tuple(section[body + 2 : body + 2 + n_dims])
                     size = abs(dtype) * int(np.prod(dims, dtype=np.int64))
                     data_at = body + 2 + n_dims
-                    if dtype not in (-1, 1, 2, 4) or n_dims > 7 or data_at + size > record_end:
+                    # A zero dimension empties the parameter, but ezc3d still loops over the
+                    # others: their product is bounded by what the section could hold.
+                    spread = int(np.prod([d for d in dims if d], dtype=np.int64))
+                    if dtype not in (-1, 1, 2, 4) or n_dims > 7 or data_at + size > record_end or spread > end:
                         fault = body
                     else:
                         params.append(

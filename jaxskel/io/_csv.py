@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
-from ._raw import RawRecording, parse_table, read_text, resolve_units, zeros_to_nan
+from ._bounds import LOAD_COPIES, check_labels, require_memory
+from ._raw import RawRecording, cut_short, parse_table, read_text, resolve_units, zeros_to_nan
 
 __all__ = ["read_csv"]
 
@@ -50,6 +51,7 @@ def read_csv(file: Path, *, units: str | None = None) -> RawRecording:
     if not name_cells or name_cells[0].lower() != "time":
         raise InputError(f"cannot read {file}: line {blank + 2} is not a name row; {_FORMAT_HINT}")
     names = [c for c in name_cells[1:] if c]
+    check_labels(names, file)
     n_markers = len(names)
     if n_markers == 0:
         raise InputError(f"cannot read {file}: the name row lists no markers")
@@ -76,22 +78,19 @@ def read_csv(file: Path, *, units: str | None = None) -> RawRecording:
             f"cannot read {file}: line {blank + 4} is not an X,Y,Z axis row; {_FORMAT_HINT}"
         )
 
-    rows = [
-        (k + blank + 5, line.split(","))
-        for k, line in enumerate(lines[blank + 4 :])
-        if line.strip(" ,\t")
-    ]
+    rows = [(k + blank + 5, line) for k, line in enumerate(lines[blank + 4 :]) if line.strip(" ,\t")]
     n_frames_header = _int(header.get("frame number"))
     if n_frames_header is not None and len(rows) < n_frames_header:
         raise InputError(
             f"cannot read {file}: the file is truncated: 'Frame number' says {n_frames_header} "
             f"frames but there are {len(rows)} data rows"
         )
-    if rows and not text.endswith(("\n", "\r")) and len(rows[-1][1]) < width:
+    if rows and not text.endswith(("\n", "\r")) and len(rows[-1][1].split(",")) < width:
         raise InputError(f"cannot read {file}: the file is truncated: the last row is cut off")
     if not rows:
         raise InputError(f"{file} contains no frames")
-    table = parse_table(rows, width, file)
+    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"holds {len(rows)} frames x {n_markers} markers")
+    table, lengths = parse_table(rows, width, file, lambda _, line: line.split(","))
 
     rate = _float(header.get("point frequency"))
     if rate is None:
@@ -111,7 +110,8 @@ def read_csv(file: Path, *, units: str | None = None) -> RawRecording:
         rate=rate,
         units=length_unit,
         first_frame=1 if first is None else first,
-        extra={"analog_rate": _float(header.get("analog frequency"))},
+        extra={"analog_rate": _float(header.get("analog frequency")), "short_rows": int((lengths < width).sum())},
+        empty_reasons=cut_short(lengths, 1, n_markers),
     )
 
 

@@ -21,8 +21,14 @@ on is decided here, the same way for every format:
 * **Non-markers.** See :func:`load` (``drop_non_markers``, ``drop_unlabeled``).
 * **Vertical axis.** See :func:`infer_up_axis` and :func:`load`.
 
+* **Report.** :func:`jaxskel.io.load_report` says in words what a load dropped,
+  renamed or found empty, and why (``jaxskel fit`` and ``jaxskel info`` print it).
+
 Every failure to read is an :class:`~jaxskel.InputError` naming the file and
-what is wrong; exceptions of the parsing libraries never escape.
+what is wrong; exceptions of the parsing libraries never escape. Sizes a file
+declares (frames, markers, label lengths) are checked against what the file
+holds and the memory available before they are allocated
+(:mod:`jaxskel.io._bounds`).
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ import numpy as np
 from jaxtyping import Float
 
 from .._errors import InputError, UnitsWarning
+from ._bounds import check_labels
 from ._raw import UP_AXES, RawRecording, median_extent, unit_scale
 from ._trial import Trial
 
@@ -113,7 +120,9 @@ def load(
         ``n_dropped``, ``dropped_labels`` and ``dropped_reasons`` (label ->
         reason), ``label_prefixes`` (subject prefixes found),
         ``kept_prefix_labels`` and ``renamed_labels`` (see the module notes),
-        ``up_axis_source`` (``"argument"``, ``"file"``, ``"file+data"``,
+        ``empty_labels`` (label -> why: markers kept without a single sample,
+        which the fit's cleaning drops), ``short_rows`` (TRC and CSV: data rows
+        that end before the last marker's columns), ``up_axis_source`` (``"argument"``, ``"file"``, ``"file+data"``,
         ``"data"``) and ``up_axis_scores``, plus format-specific entries
         (``manufacturer``, ``stated_up_axis``, ...), and ``file``: the path this
         load read (outputs are never written over it). A trial read from HDF5
@@ -148,15 +157,21 @@ def load(
         raise InputError(f"cannot read {file}: not a regular file")
     if file.stat().st_size == 0:
         raise InputError(f"cannot read {file}: the file is empty")
-    if units is not None:
-        unit_scale(units, file)  # validate early, with a helpful message
-    if up_axis is not None and up_axis not in UP_AXES:
-        raise InputError(f"up_axis must be one of {UP_AXES}, got {up_axis!r}")
+    check_load_arguments(units, up_axis)  # early, with a helpful message
 
     raw = _read_raw(fmt, file, units)
     if raw.units.note is not None:
         warnings.warn(raw.units.note, UnitsWarning, stacklevel=2)
     return _to_trial(raw, file, fmt, drop_unlabeled, drop_non_markers, up_axis)
+
+
+def check_load_arguments(units: str | None, up_axis: str | None) -> None:
+    """InputError for a ``units`` or ``up_axis`` that :func:`load` would refuse (for
+    callers that load later, as :func:`jaxskel.fit_batch` does)."""
+    if units is not None:
+        unit_scale(units, Path())
+    if up_axis is not None and up_axis not in UP_AXES:
+        raise InputError(f"up_axis must be one of {', '.join(UP_AXES)} (--up-axis on the command line); got {up_axis!r}")
 
 
 def save_trial(trial: Trial, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
@@ -317,6 +332,7 @@ def _to_trial(
     up_axis: str | None,
 ) -> Trial:
     n_points = len(raw.labels)
+    check_labels(raw.labels, file)
     if raw.positions.shape[1] != n_points:
         raise InputError(
             f"{file}: {raw.positions.shape[1]} point columns but {n_points} labels; "
@@ -370,6 +386,12 @@ def _to_trial(
     labels, renamed = _unique_labels(kept_names, originals)
     positions = raw.positions[:, keep]
 
+    # Markers kept without a single sample: the fit's cleaning drops them, so say why now.
+    never = ~(~np.isnan(positions).any(axis=-1)).any(axis=0)
+    empty = {
+        label: raw.empty_reasons.get(i, "missing or at 0, 0, 0 in every frame")
+        for label, i, gone in zip(labels, keep, never, strict=True) if gone
+    }
     dropped = [raw.labels[i].strip() for i in sorted(reasons)]
     dropped_reasons = {raw.labels[i].strip(): reasons[i] for i in sorted(reasons)}
     axis, up_source, scores = _resolve_up_axis(positions, raw, up_axis)
@@ -384,6 +406,7 @@ def _to_trial(
         "label_prefixes": sorted(prefixes),
         "kept_prefix_labels": kept_prefix,
         "renamed_labels": renamed,
+        "empty_labels": empty,
         "up_axis_source": up_source,
         "up_axis_scores": {k: round(v, 4) for k, v in scores.items()},
         **raw.extra,

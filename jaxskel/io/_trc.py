@@ -11,9 +11,13 @@ Layout::
     <frame>  <time>  x  y  z  x  y  z ...
 
 An empty cell is a missing coordinate. Readers are tolerant of trailing tabs,
-of rows that end early (the remaining markers are missing) and of markers that
-are never seen (kept as all-NaN). A file with fewer data rows than
-``NumFrames``, or whose last row is cut off, is truncated and rejected.
+of tab-separated rows that end early (the remaining markers are missing in that
+frame: a gap, ``metadata["short_rows"]`` counts such rows) and of markers that are
+never seen (kept as all-NaN; :func:`jaxskel.load` lists them in
+``metadata["empty_labels"]`` with the reason). A row separated by spaces must hold
+every value: there a missing value cannot be told from a shifted one, so a short
+one is rejected. A file with fewer data rows than ``NumFrames``, or whose last row
+is cut off, is truncated and rejected.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ import numpy as np
 
 from .._errors import InputError
 from ._atomic import atomic_output
-from ._raw import RawRecording, TrialLike, parse_table, read_text, resolve_units, zeros_to_nan
+from ._bounds import LOAD_COPIES, check_labels, require_memory
+from ._raw import RawRecording, TrialLike, cut_short, parse_table, read_text, resolve_units, zeros_to_nan
 
 __all__ = ["read_trc", "write_trc"]
 
@@ -61,6 +66,7 @@ def read_trc(file: Path, *, units: str | None = None) -> RawRecording:
         raise InputError(f"{file}: invalid DataRate {header['DataRate']!r}")
 
     names = [cell.strip() for cell in _split(lines[3])[2:] if cell.strip()]
+    check_labels(names, file)
     if len(names) != n_markers:
         raise InputError(
             f"{file}: the header says NumMarkers={n_markers} but the name row lists "
@@ -78,18 +84,33 @@ def read_trc(file: Path, *, units: str | None = None) -> RawRecording:
             f"cannot read {file}: the file is truncated: the last row (line {rows[-1][0]}) "
             "is cut off"
         )
-    table = parse_table([(n, _split(line)) for n, line in rows], width, file)
+    require_memory(file, len(rows) * width * 8 * LOAD_COPIES, f"holds {len(rows)} frames x {n_markers} markers")
+
+    def cells(line_no: int, line: str) -> list[str]:
+        if "\t" in line:
+            return line.split("\t")
+        values = line.split()
+        if len(values) < width:
+            raise InputError(
+                f"{file}, line {line_no}: {len(values)} values where {width} are expected (frame, time and "
+                f"X, Y, Z of {n_markers} markers); in a row separated by spaces a missing value cannot be told "
+                "from a shifted one: write missing values as empty tab-separated cells or as NaN"
+            )
+        return values
+
+    table, lengths = parse_table(rows, width, file, cells)
     raw = table[:, 2:].reshape(len(rows), n_markers, 3)
     length_unit = resolve_units(header.get("Units"), units, raw, file)
     first_frame = header.get("OrigDataStartFrame", "")
     try:
         first = int(float(first_frame)) if first_frame else int(table[0, 0]) if rows else 1
-    except ValueError:
+    except (ValueError, OverflowError):  # not a number, NaN or infinite
         first = 1
     extra = {
         "camera_rate": _optional_float(header.get("CameraRate")),
         "orig_data_rate": _optional_float(header.get("OrigDataRate")),
         "num_frames_header": n_frames_header,
+        "short_rows": int((lengths < width).sum()),
     }
     return RawRecording(
         positions=zeros_to_nan(raw) * length_unit.scale,
@@ -98,6 +119,7 @@ def read_trc(file: Path, *, units: str | None = None) -> RawRecording:
         units=length_unit,
         first_frame=first,
         extra=extra,
+        empty_reasons=cut_short(lengths, 2, n_markers),
     )
 
 
@@ -149,8 +171,8 @@ def _header(keys_line: str, values_line: str, file: Path) -> dict[str, str]:
 def _header_int(header: dict[str, str], key: str, file: Path) -> int:
     try:
         value = int(float(header[key]))
-    except ValueError:
-        raise InputError(f"{file}: TRC header {key}={header[key]!r} is not a number") from None
+    except (ValueError, OverflowError):  # not a number, NaN or infinite
+        raise InputError(f"{file}: TRC header {key}={header[key]!r} is not a whole number") from None
     if value < 0:
         raise InputError(f"{file}: TRC header {key}={value} is negative")
     return value

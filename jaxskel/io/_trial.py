@@ -23,6 +23,7 @@ import numpy as np
 from .._errors import InputError
 from .._math.padding import bucket_size
 from .._math.rotation import skew_np
+from ._bounds import MAX_LABEL_CHARS
 from ._raw import UP_AXES
 
 __all__ = ["Trial", "UP_AXES", "rotation_between_axes"]
@@ -79,7 +80,7 @@ class Trial:
         Array (F, M, 3): F frames, M markers, metres. NaN (any coordinate) marks
         a missing sample; the whole sample is then treated as missing.
     labels
-        M unique marker labels.
+        M unique marker labels, of at most 1024 characters each.
     rate
         Frame rate in Hz (> 0).
     up_axis
@@ -119,6 +120,12 @@ class Trial:
         if len(labels) != pos.shape[1]:
             raise InputError(
                 f"Trial has {pos.shape[1]} markers but {len(labels)} labels; give one label per marker."
+            )
+        long = next((i for i, lab in enumerate(labels) if len(lab) > MAX_LABEL_CHARS), None)
+        if long is not None:
+            raise InputError(
+                f"marker label {long + 1} ({labels[long][:20]!r}...) is {len(labels[long])} characters long; "
+                f"labels have at most {MAX_LABEL_CHARS} (every stage copies them into arrays as wide as the longest)"
             )
         if len(set(labels)) != len(labels):
             dup = sorted({lab for lab in labels if labels.count(lab) > 1})

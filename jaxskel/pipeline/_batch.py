@@ -42,6 +42,7 @@ Pipeline (one process)::
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 import os
 import threading
@@ -52,7 +53,7 @@ from typing import Any
 
 from .._errors import InputError, JaxskelError
 from .._runtime.precision import float64_scope
-from ..io import Trial
+from ..io import Trial, check_load_arguments
 from ._batch_io import (
     BoneSpec,
     _normalise_specs,
@@ -221,6 +222,8 @@ def fit_batch(
     keep_results: bool | None = None,
     summary: str | None = "summary.csv",
     progress: bool = False,
+    units: str | None = None,
+    up_axis: str | None = None,
     **settings: Any,
 ) -> BatchResult:
     """Fit a skeleton to each of many trials: batched, overlapped, resumable.
@@ -271,6 +274,10 @@ def fit_batch(
         File name of the summary CSV in ``outdir`` (``None``: none).
     progress
         Show a progress bar over trials.
+    units, up_axis
+        How paths are read (:func:`jaxskel.load`'s arguments; ``units`` is not applied
+        to HDF5 trials, which are always metres). Part of the completion record, so a
+        rerun with other values fits again.
 
     Returns
     -------
@@ -282,13 +289,15 @@ def fit_batch(
     if scheduler is not None and out is None:
         raise InputError("fit_batch with a scheduler needs outdir: the workers write the result files there")
     options = resolve_options(options, settings)
+    check_load_arguments(units, up_axis)
     if int(batch_size) < 1 or int(jobs) < 1:
         raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
     if out is not None:
         if out.exists() and not out.is_dir():
             raise InputError(f"{out} exists and is not a folder")
         out.mkdir(parents=True, exist_ok=True)
-    items = _resolve_items(trials, out, names, subjects)
+    reading = tuple((k, v) for k, v in (("units", units), ("up_axis", up_axis)) if v is not None)
+    items = [dataclasses.replace(item, load_options=reading) for item in _resolve_items(trials, out, names, subjects)]
     specs = _normalise_specs(bones)
     keep = (out is None) if keep_results is None else bool(keep_results)
 
@@ -322,7 +331,7 @@ def fit_batch(
             todo.append(item)
             continue
         try:
-            signatures[item.index] = signature(item.inputs, options.as_flat())
+            signatures[item.index] = signature(item.inputs, {**options.as_flat(), **dict(reading)})
         except OSError as exc:
             on_outcome(item, failed(item, InputError(f"{item.inputs_text()}: cannot read ({exc})"), 0.0))
             continue

@@ -62,7 +62,7 @@ def _size(item: Any) -> int:
 
 
 def _fit_group(
-    packed: list[tuple[int, str, str, list[Any], str | None]],
+    packed: list[tuple[int, str, str, list[Any], str | None, tuple[tuple[str, Any], ...]]],
     options: FitOptions,
     bones: Mapping[str, Any],
     signatures: Mapping[int, str],
@@ -77,8 +77,8 @@ def _fit_group(
 
     enable_compile_cache()
     items = [
-        Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out))
-        for index, name, subject, inputs, out in packed
+        Item(index, name, subject, tuple(_unpack(v) for v in inputs), None if out is None else Path(out), reading)
+        for index, name, subject, inputs, out, reading in packed
     ]
     rows: list[tuple[int, dict[str, Any], str, list[tuple[str, str]]]] = []
 
@@ -128,7 +128,8 @@ def run_distributed(
         futures = {}
         for group in groups:
             packed = [
-                (it.index, it.name, it.subject, [_pack(v) for v in it.inputs], None if it.output is None else str(it.output))
+                (it.index, it.name, it.subject, [_pack(v) for v in it.inputs], None if it.output is None else str(it.output),
+                 it.load_options)
                 for it in group
             ]
             sigs = {it.index: signatures.get(it.index, "") for it in group}

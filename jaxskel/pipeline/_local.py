@@ -52,9 +52,25 @@ class Item:
     subject: str
     inputs: tuple[Any, ...]  # paths and/or Trials, fitted together
     output: Path | None
+    #: jaxskel.load's units= and up_axis= for the paths, as (name, value) pairs
+    load_options: tuple[tuple[str, Any], ...] = ()
 
     def inputs_text(self) -> str:
         return "; ".join(str(v) if isinstance(v, (str, os.PathLike)) else (v.source or "<trial>") for v in self.inputs)
+
+    def trials(self) -> list[Any]:
+        """The inputs as Trials: paths read with :attr:`load_options` (no unit for HDF5 trials, always metres)."""
+        from ..io import load
+
+        out = []
+        for v in self.inputs:
+            if isinstance(v, (str, os.PathLike)):
+                kwargs = dict(self.load_options)
+                if Path(v).suffix.lower() in (".h5", ".hdf5"):
+                    kwargs.pop("units", None)
+                v = load(v, **kwargs)
+            out.append(v)
+        return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,12 +134,11 @@ class _Work:
 
 @float64_scope
 def _prepare(item: Item, options: FitOptions) -> _Work:
-    from ..io import load
     from ..joints import all_pairs_problem
 
     work = _Work(item, time.perf_counter())
     t0 = time.perf_counter()
-    trials = [load(v) if isinstance(v, (str, os.PathLike)) else v for v in item.inputs]
+    trials = item.trials()
     load_s = time.perf_counter() - t0
     plan = StagePlan(options, device_lock=DEVICE_LOCK)
     work.prep = plan.prepare(trials)

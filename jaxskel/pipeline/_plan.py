@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -30,7 +31,7 @@ import numpy as np
 
 from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
 from ..clean import CleaningReport, Lowpassed, check_cutoff, clean, lowpass_markers
-from ..io import Trial, median_extent
+from ..io import Trial, median_extent, units_problem
 from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
 from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
 from ..result import SkeletonResult, nonrigid_text
@@ -49,32 +50,56 @@ from ._warnings import (
     warn_untested,
 )
 
-__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_units", "moving_frames"]
+__all__ = ["PreparedFit", "StagePlan", "as_trials", "check_marker_sets", "check_units", "moving_frames"]
 
 
 def check_units(trial: Trial) -> None:
     """Raise :class:`InputError` when positions are clearly not in metres.
 
-    A human or a lab linkage spans centimetres to a few metres per frame. The
-    median over frames of the body's span (the same measure the file readers use
-    to guess missing units, :func:`jaxskel.io.median_extent`) must lie in
-    [2 cm, 40 m]; outside it the data are almost surely millimetres read as
-    metres (or similar).
+    The median over frames of the body's span must lie in
+    :data:`jaxskel.io.PLAUSIBLE_SPAN` (2 cm to 40 m); the message says what to do
+    for where the positions came from (:func:`jaxskel.io.units_problem`).
     """
-    extent = median_extent(np.asarray(trial.positions))
-    name = trial.source or "trial"
-    if extent is None:
-        raise InputError(f"{name}: no frame has two markers present; there is nothing to fit")
-    if extent > 40.0:
-        raise InputError(
-            f"{name}: the markers span {extent:.0f} units; positions look like millimetres, not metres. "
-            "Load files with jaxskel.load (it converts units) or divide by 1000."
-        )
-    if extent < 0.02:
-        raise InputError(
-            f"{name}: the markers span only {extent:.2g} units; positions do not look like metres "
-            "(kilometres?). Convert to metres first."
-        )
+    if median_extent(np.asarray(trial.positions)) is None:
+        raise InputError(f"{trial.source or 'trial'}: no frame has two markers present; there is nothing to fit")
+    problem = units_problem(trial)
+    if problem is not None:
+        raise InputError(problem)
+
+
+# Vicon's names for trajectories that were never labelled: they differ between recordings.
+_UNLABELED = re.compile(r"^\*\d+$")
+
+
+def check_marker_sets(trials: Sequence[Trial]) -> None:
+    """Raise :class:`InputError` when trials fitted together do not share their markers.
+
+    Markers are matched across trials by label. A trial may lack markers another has (a
+    motion trial without the calibration trial's extra markers, a marker lost), as long
+    as one trial holds every labelled marker of the others; otherwise the labels name
+    different markers, or the same markers differently, and the fit would end in a
+    forest of segments never seen together. Unlabelled ``*N`` trajectories are left out.
+    """
+    if len(trials) < 2:
+        return
+    named = [{lab for lab in t.labels if not _UNLABELED.match(lab)} for t in trials]
+    union = set().union(*named)
+    if any(markers == union for markers in named):
+        return
+    order = list(dict.fromkeys(lab for t in trials for lab in t.labels if lab in union))
+    names = [str(t.metadata.get("file") or t.source or f"trial {i + 1}") for i, t in enumerate(trials)]
+    parts = []
+    for i, markers in enumerate(named):
+        lacks = [lab for lab in order if lab not in markers]
+        if lacks:
+            holders = [names[j] for j, other in enumerate(named) if j != i and other & set(lacks)]
+            shown = ", ".join(lacks[:8]) + (f" and {len(lacks) - 8} more" if len(lacks) > 8 else "")
+            parts.append(f"{names[i]} lacks {shown} (in {', '.join(holders)})")
+    raise InputError(
+        "the trials fitted together have different markers (they are matched by label, and no trial has all "
+        f"of them): {'; '.join(parts)}. Fit them separately, rename the markers to match, or keep the markers "
+        "they share (Trial.select_markers)"
+    )
 
 
 def moving_frames(trial: Trial, segmentation: Segmentation) -> Trial:
@@ -167,6 +192,7 @@ class StagePlan:
         trials = as_trials(trial_or_trials)
         for t in trials:
             check_units(t)
+        check_marker_sets(trials)
         combined = combine_trials(trials)
         bounds = tuple(combined.metadata.get("trial_bounds", ((0, combined.n_frames),)))
         check_cutoff(o.motion.lowpass, rate=combined.rate, allow_none=True)  # below the Nyquist frequency
