@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from helpers import horn_align
 
 
 @dataclass(frozen=True)
@@ -50,44 +51,32 @@ def read_osim(path: Path) -> OsimModel:
     return OsimModel(body, loc, joints)
 
 
-def _horn(model_pts: np.ndarray, lab_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t with lab ~ R @ model + t (least squares; model_pts, lab_pts: (n, 3))."""
-    mc, lc = model_pts.mean(0), lab_pts.mean(0)
-    u, _, vt = np.linalg.svd((lab_pts - lc).T @ (model_pts - mc))
-    d = np.sign(np.linalg.det(u @ vt))
-    r = u @ np.diag([1.0, 1.0, d]) @ vt
-    return r, lc - r @ mc
-
-
-def body_points_in_lab(model: OsimModel, labels, positions, body: str, points: np.ndarray,
-                       marker_map=None) -> tuple[np.ndarray, np.ndarray]:
-    """``points`` (k, 3) fixed in ``body`` carried into the lab in every frame: (frames, k, 3),
-    NaN where fewer than three of the body's markers are seen; and the per-frame RMS marker
-    residual of the body's rigid fit [m]. ``labels``/``positions`` are the recording's (metres)."""
-    marker_map = marker_map or {}
-    names = [n for n, b in model.marker_body.items() if b == body]
-    index = {lab: i for i, lab in enumerate(labels)}
-    cols = [(index[marker_map.get(n, n)], model.marker_location[n]) for n in names if marker_map.get(n, n) in index]
-    nf = positions.shape[0]
-    out = np.full((nf, len(points), 3), np.nan)
-    resid = np.full(nf, np.nan)
-    if len(cols) < 3:
-        return out, resid
-    idx = np.array([c[0] for c in cols])
-    mpts = np.stack([c[1] for c in cols])
-    for f in range(nf):
-        lab = positions[f, idx]
+def _follow(reference: np.ndarray, measured: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``points`` (k, 3), given in the frame of the marker cloud ``reference`` (n, 3), carried
+    into every frame of ``measured`` (F, n, 3) by Horn's fit of the cloud: (F, k, 3) and the
+    fit's RMS marker residual per frame; NaN where fewer than three markers are seen."""
+    out = np.full((measured.shape[0], len(points), 3), np.nan)
+    resid = np.full(measured.shape[0], np.nan)
+    for f, lab in enumerate(measured):
         ok = np.isfinite(lab).all(1)
         if ok.sum() < 3:
             continue
-        r, t = _horn(mpts[ok], lab[ok])
+        r, t = horn_align(reference[ok], lab[ok])
         out[f] = points @ r.T + t
-        resid[f] = np.sqrt(np.mean(np.sum((mpts[ok] @ r.T + t - lab[ok]) ** 2, -1)))
+        resid[f] = np.sqrt(np.mean(np.sum((reference[ok] @ r.T + t - lab[ok]) ** 2, -1)))
     return out, resid
 
 
-def horn(model_pts: np.ndarray, lab_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return _horn(model_pts, lab_pts)
+def body_points_in_lab(model: OsimModel, labels, positions, body: str,
+                       points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``points`` (k, 3) fixed in ``body`` carried into the lab in every frame: (frames, k, 3),
+    NaN where fewer than three of the body's markers are seen; and the per-frame RMS marker
+    residual of the body's rigid fit [m]. ``labels``/``positions`` are the recording's (metres)."""
+    cols = [(list(labels).index(n), model.marker_location[n])
+            for n, b in model.marker_body.items() if b == body and n in labels]
+    if len(cols) < 3:
+        return np.full((positions.shape[0], len(points), 3), np.nan), np.full(positions.shape[0], np.nan)
+    return _follow(np.stack([c[1] for c in cols]), positions[:, [c[0] for c in cols]], points)
 
 
 def carry(static_labels, static_positions, points: np.ndarray, cluster, labels, positions) -> np.ndarray:
@@ -96,16 +85,7 @@ def carry(static_labels, static_positions, points: np.ndarray, cluster, labels, 
     cluster = [c for c in cluster if c in static_labels and c in labels]
     si = [list(static_labels).index(c) for c in cluster]
     di = [list(labels).index(c) for c in cluster]
-    ref = np.nanmedian(static_positions[:, si], axis=0)
-    out = np.full((positions.shape[0], len(points), 3), np.nan)
-    for f in range(positions.shape[0]):
-        lab = positions[f, di]
-        ok = np.isfinite(lab).all(1)
-        if ok.sum() < 3:
-            continue
-        r, t = _horn(ref[ok], lab[ok])
-        out[f] = points @ r.T + t
-    return out
+    return _follow(np.nanmedian(static_positions[:, si], axis=0), positions[:, di], points)[0]
 
 
 def hamner_joint_centres(model: OsimModel, static, trial) -> dict[str, np.ndarray]:
