@@ -27,8 +27,10 @@ one rigid body and the fit says so.
 
 Maths. With ``d_kl(f)`` the distance of markers k and l at frame f and ``F_i`` the frames
 marker i is seen in, the relative motion while i is seen is ``A^i_kl = std_{f in F_i}
-d_kl(f)`` (white noise taken out); marker i carries grouping evidence when at least
-:data:`MOVING_PAIR_FRACTION` of the pairs seen there have ``A^i_kl`` above the limit. The
+d_kl(f)`` (white noise taken out). Of the pairs that move apart beyond the limit over the
+whole recording (those that can tell segments apart), marker i is left out when fewer than
+:data:`MOVING_PAIR_FRACTION` of the ones seen in ``F_i`` do so there; where ``F_i`` shows none
+of them (only one rigid group in view), it is kept. The
 moments ``sum_f v_i(f) w_kl(f) d_kl(f)^p`` (p = 0, 1, 2; ``v``, ``w`` presence) are one
 matrix product over frames for all markers at once.
 """
@@ -107,10 +109,11 @@ class _RelativeMotion:
         return np.sqrt(var), s0
 
     def limit(self, *, sigma_min: float, sigma_factor: float, rigid_ratio: float) -> float | None:
-        """The segmentation's rigidity limit on this recording (``None``: no pair measured)."""
+        """The segmentation's rigidity limit on this recording (``None``: no pair measured);
+        it also keeps the recording's own distance stds, for :meth:`moving_pairs`."""
         a, n = self.std(np.ones((1, self.w.shape[0])))
-        a = np.where((n[0] >= MIN_SHARED_FRAMES) & self.off_diag, a[0], np.inf)
-        nearest = a.min(axis=1)
+        self.a_all = np.where((n[0] >= MIN_SHARED_FRAMES) & self.off_diag, a[0], np.inf)
+        nearest = self.a_all.min(axis=1)
         nearest = nearest[np.isfinite(nearest)]
         if not nearest.size:
             return None
@@ -118,10 +121,12 @@ class _RelativeMotion:
                               rigid_ratio=rigid_ratio)
 
     def moving_pairs(self, weights: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
-        """For each row of ``weights``: how many marker pairs move apart beyond ``limit``
-        over those frames, and how many pairs are measured there."""
+        """For each row of ``weights``: of the marker pairs that move apart beyond ``limit``
+        somewhere in the recording (the pairs that *can* tell segments apart), how many do
+        over those frames, and how many are measured there."""
         a, n = self.std(weights)
-        pairs = (n >= MIN_SHARED_FRAMES) & self.off_diag[None]
+        movable = np.isfinite(self.a_all) & (self.a_all > limit)
+        pairs = (n >= MIN_SHARED_FRAMES) & movable[None]
         return (pairs & (a > limit)).sum(axis=(1, 2)), pairs.sum(axis=(1, 2))
 
 
@@ -152,7 +157,7 @@ def still_trials(
         return ()
     weights = np.stack([((frames >= a) & (frames < b)).astype(float) for a, b in bounds])
     moving, n = motion.moving_pairs(weights, limit)
-    still = tuple(i for i in range(len(bounds)) if moving[i] < MOVING_PAIR_FRACTION * max(int(n[i]), 1))
+    still = tuple(i for i in range(len(bounds)) if n[i] > 0 and moving[i] < MOVING_PAIR_FRACTION * n[i])
     return still if len(still) < len(bounds) else ()
 
 
@@ -192,9 +197,9 @@ def left_out_markers(
     moving_pairs, n_pairs = motion.moving_pairs(seen.T.astype(float), limit)  # over each marker's frames
     d, both = motion.d, motion.both
     off_diag = ~np.eye(m, dtype=bool)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        evidence = np.where(n_pairs > 0, moving_pairs / np.maximum(n_pairs, 1), 0.0)
-    has_evidence = evidence >= MOVING_PAIR_FRACTION
+    # A marker whose frames show no pair that moves elsewhere (the only markers then in view
+    # are one rigid group, or the recording moves nothing) is not judged: it is kept.
+    has_evidence = (n_pairs == 0) | (moving_pairs >= MOVING_PAIR_FRACTION * np.maximum(n_pairs, 1))
     reasons: dict[str, str] = {}
     if not has_evidence.any():
         return LeftOut({})
@@ -202,16 +207,10 @@ def left_out_markers(
     for i in np.flatnonzero(~has_evidence):
         t = times[seen[:, i]]
         span = f"{t.min():.2f}-{t.max():.2f} s" if t.size else "no frame"
-        if n_pairs[i] == 0:
-            reasons[trial.labels[i]] = (
-                f"seen in too few frames together with other markers ({span}) to measure its distances to them; "
-                "fit it with a trial in which it is seen longer"
-            )
-            continue
         reasons[trial.labels[i]] = (
             f"seen only while no two segments moved relative to each other ({span}; "
-            f"{moving_pairs[i]} of {n_pairs[i]} marker pairs moved apart beyond the rigidity limit "
-            f"{1000 * limit:.1f} mm): the motion cannot tell which segment it is on; "
+            f"{moving_pairs[i]} of the {n_pairs[i]} marker pairs that move apart elsewhere did so there, beyond the "
+            f"rigidity limit {1000 * limit:.1f} mm): the motion cannot tell which segment it is on; "
             "fit it with a trial in which it moves"
         )
 
@@ -220,8 +219,9 @@ def left_out_markers(
                        if seen[:, i].any() else np.full(3, np.nan) for i in range(m)])
     spread = np.array([np.percentile(np.linalg.norm(x[seen[:, i], i] - centre[i], axis=-1), 90)
                        if seen[:, i].any() else np.inf for i in range(m)])
-    still = (spread <= limit) & has_evidence
-    moving = (spread > limit) & has_evidence
+    judged = has_evidence & (seen.sum(axis=0) >= MIN_SHARED_FRAMES)  # a marker seen a moment is not judged
+    still = (spread <= limit) & judged
+    moving = (spread > limit) & judged
     if not still.any() or not moving.any():
         return LeftOut(reasons)
     d_p90 = np.full((m, m), np.inf)

@@ -56,7 +56,7 @@ from jaxtyping import Bool, Float, Int
 
 __all__ = [
     "MAX_BONE_COSINE", "MAX_OFF_AXIS", "MAX_OFF_AXIS_REFINED", "MIN_ROTATION_RMS", "STRADDLE_RATIO", "hinge_axes",
-    "MIN_STRADDLE_WIDTH", "STRADDLE_REACH", "axial_coordinates", "axis_along_a_bone", "hinge_shifts", "longest_bone", "straddling_pair",
+    "MIN_STRADDLE_WIDTH", "axial_coordinates", "axis_along_a_bone", "hinge_shifts", "longest_bone", "straddling_pair",
 ]
 
 #: A joint slides only if it turns as a hinge: the share of its rotation about the other
@@ -96,11 +96,6 @@ MIN_ROTATION_RMS = float(np.deg2rad(5.0))
 #: away two markers on one side of a limb (a small separation along the axis) and the
 #: markers of a limb's surface, which lie across the axis, not along it.
 STRADDLE_RATIO = 0.6
-
-#: Both straddling markers lie within this many times their separation of the current
-#: centre: the two sides of the joint, not a pair of markers further along a limb (two
-#: midfoot markers 2 cm apart, 13 cm from the ankle, that an oblique axis happens to pass).
-STRADDLE_REACH = 1.5
 
 #: Straddling markers are at least this fraction of the joint's longest bone apart: the
 #: width of a joint across its axis (epicondyles, malleoli, styloids: 0.17-0.25 of the
@@ -219,9 +214,8 @@ def straddling_pair(
     ``along[i]``: marker i's coordinate along the axis from the current centre (metres);
     ``off[i]``: its distance from the axis. The candidates are markers nearer this joint
     than any other (the caller's choice). A pair straddles the joint when both lie within
-    :data:`STRADDLE_RATIO` times their separation of the axis and within
-    :data:`STRADDLE_REACH` times it of the centre; of several, the one closest to the axis
-    relative to its separation. The pair must also be at least :data:`MIN_STRADDLE_WIDTH`
+    :data:`STRADDLE_RATIO` times their separation of the axis; of several, the one closest
+    to the axis relative to its separation. The pair must also be at least :data:`MIN_STRADDLE_WIDTH`
     times ``bone`` apart (the joint's longest bone: a knee's epicondyles are about a fifth
     of a femur apart, two markers on one side of a foot a twentieth of a shank). Returns ``(i, k, shift)`` with ``along[i] >
     along[k]`` and ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
@@ -236,9 +230,7 @@ def straddling_pair(
     t, r = t[ok], r[ok]
     sep = np.abs(t[:, None] - t[None, :])
     worst = np.maximum(r[:, None], r[None, :]) / np.where(sep > 0, sep, np.nan)
-    reach = np.hypot(t, r)  # distance from the current centre
     sep = np.where(sep >= MIN_STRADDLE_WIDTH * bone, sep, 0.0)
-    worst[np.maximum(reach[:, None], reach[None, :]) > STRADDLE_REACH * sep] = np.nan  # a pair off to one side
     np.fill_diagonal(worst, np.nan)
     if not np.isfinite(worst).any():
         return None

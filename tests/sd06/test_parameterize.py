@@ -16,7 +16,12 @@ from jaxskel import DegenerateMotionWarning, InputError, synth
 
 from jaxskel.plots import plot_angles, plot_joint_spheres, plot_speed_histograms
 from jaxskel.sd06 import Normalization, Parameterization, normalize_arrays, parameterize, parameterize_arrays
-from jaxskel.sd06._parameterize import parameterize_normalized, write_parameters
+from jaxskel._runtime.precision import float64_scope
+from jaxskel.sd06._parameterize import parameterize_normalized as _parameterize_normalized
+from jaxskel.sd06._parameterize import write_parameters
+
+# private: it runs inside the float64 scope of parameterize(), which calls it
+parameterize_normalized = float64_scope(_parameterize_normalized)
 
 RATE = 30.0  # main_movements at 30 Hz: 420 frames, the bucket of tests/sd06/test_normalize.py
 BODY = synth.full_body(seed=0)
