@@ -215,10 +215,11 @@ def straddling_pair(
     ``off[i]``: its distance from the axis. The candidates are markers nearer this joint
     than any other (the caller's choice). A pair straddles the joint when both lie within
     :data:`STRADDLE_RATIO` times their separation of the axis; of several, the one closest
-    to the axis relative to its separation. The pair must also be at least :data:`MIN_STRADDLE_WIDTH`
-    times ``bone`` apart (the joint's longest bone: a knee's epicondyles are about a fifth
-    of a femur apart, two markers on one side of a foot a twentieth of a shank). Returns ``(i, k, shift)`` with ``along[i] >
-    along[k]`` and ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
+    to the axis relative to its separation. The pair must also be at least
+    :data:`MIN_STRADDLE_WIDTH` times ``bone`` apart (the joint's longest bone: a knee's
+    epicondyles are about a fifth of a femur apart, two markers on one side of a foot a
+    twentieth of a shank). Returns ``(i, k, shift)`` with ``along[i] > along[k]`` and
+    ``shift = (along[i] + along[k]) / 2``, the move along the axis that puts
     the centre midway between them (the current centre, which the motion leaves free along
     the axis, need not lie between them).
     """
