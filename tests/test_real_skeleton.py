@@ -206,6 +206,7 @@ def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
     assert "not exercised" in result.summary()
 
 
+@pytest.mark.extended  # about 1 min; the CI run keeps the other real-data trees (python -m pytest -m extended)
 def test_numediart_rolling_take_keeps_its_segments_rigid():
     """numediart 03_rolling: 68 markers, 19 s of rolling on the floor, two labels seen only
     in the first 3.4 s. In that stretch they are falsely rigid with markers all over the
@@ -251,6 +252,7 @@ def _part_segments(result) -> dict[str, int]:
     return out
 
 
+@pytest.mark.extended  # about 1 min; the CI run keeps the other real-data trees (python -m pytest -m extended)
 def test_biobuddy_hip_and_knee_trials_fitted_together_give_the_leg_skeleton():
     """biobuddy lower-limb calibration (Vicon, 12 Hz, 60 markers): a functional trial per
     joint. The left-hip trial alone moves no knee, so thigh and shank (and the whole right
