@@ -360,8 +360,8 @@ class StagePlan:
         s = self.options.segment
         if not s.leave_out or s.rigid_ratio is None or len(bounds) < 2:
             return ()
-        still = still_trials(work, tuple(bounds), white_noise=white_noise(work.positions), sigma_min=s.sigma_min,
-                             sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
+        still = still_trials(work, tuple(bounds), white_noise=white_noise(work.positions), sigma=s.sigma,
+                             sigma_min=s.sigma_min, sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
         return tuple(tuple(bounds[i]) for i in still)
 
     def _leave_out(self, work: Trial) -> tuple[Trial, dict[str, str], Trial | None]:
@@ -371,8 +371,8 @@ class StagePlan:
         s = self.options.segment
         if not s.leave_out or s.rigid_ratio is None:
             return work, {}, None
-        left = left_out_markers(work, white_noise=white_noise(work.positions), sigma_min=s.sigma_min,
-                                sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
+        left = left_out_markers(work, white_noise=white_noise(work.positions), sigma=s.sigma,
+                                sigma_min=s.sigma_min, sigma_factor=s.sigma_factor, rigid_ratio=s.rigid_ratio)
         if not left or len(left.labels) > work.n_markers - 3:
             return work, {}, None
         warnings.warn(

@@ -43,6 +43,7 @@ import warnings
 import numpy as np
 
 from ..io import Trial
+from ._spectral import affinity_scale
 
 __all__ = ["LeftOut", "left_out_markers", "rigidity_limit", "still_trials"]
 
@@ -75,11 +76,12 @@ class LeftOut:
         return bool(self.reasons)
 
 
-def rigidity_limit(noise_floor: float, *, sigma_min: float, sigma_factor: float, rigid_ratio: float) -> float:
+def rigidity_limit(
+    noise_floor: float, *, sigma: float | None = None, sigma_min: float, sigma_factor: float, rigid_ratio: float
+) -> float:
     """The largest distance std (noise taken out) two markers of one segment may show:
-    ``rigid_ratio * max(sigma_min, sigma_factor * noise_floor)`` (``noise_floor``: the
-    median over markers of their smallest distance std)."""
-    return float(rigid_ratio) * max(float(sigma_min), float(sigma_factor) * float(noise_floor))
+    ``rigid_ratio`` times the segmentation's affinity scale (:func:`affinity_scale`)."""
+    return float(rigid_ratio) * affinity_scale(noise_floor, sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor)
 
 
 class _RelativeMotion:
@@ -95,6 +97,9 @@ class _RelativeMotion:
         self.m = m
         self.noise2 = 2.0 * float(white_noise) ** 2
         self.off_diag = ~np.eye(m, dtype=bool)
+        a, n = self.std(np.ones((1, t)))
+        #: (M, M) the recording's own distance stds over all frames (inf: not measured)
+        self.a_all = np.where((n[0] >= MIN_SHARED_FRAMES) & self.off_diag, a[0], np.inf)
 
     def std(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, n)``: for each row of ``weights`` (G, T), the (M, M) distance std over those
@@ -108,16 +113,14 @@ class _RelativeMotion:
             var = np.maximum(s2 / s0 - mean * mean - self.noise2, 0.0)
         return np.sqrt(var), s0
 
-    def limit(self, *, sigma_min: float, sigma_factor: float, rigid_ratio: float) -> float | None:
-        """The segmentation's rigidity limit on this recording (``None``: no pair measured);
-        it also keeps the recording's own distance stds, for :meth:`moving_pairs`."""
-        a, n = self.std(np.ones((1, self.w.shape[0])))
-        self.a_all = np.where((n[0] >= MIN_SHARED_FRAMES) & self.off_diag, a[0], np.inf)
+    def limit(self, *, sigma: float | None, sigma_min: float, sigma_factor: float,
+              rigid_ratio: float) -> float | None:
+        """The segmentation's rigidity limit on this recording (``None``: no pair measured)."""
         nearest = self.a_all.min(axis=1)
         nearest = nearest[np.isfinite(nearest)]
         if not nearest.size:
             return None
-        return rigidity_limit(float(np.median(nearest)), sigma_min=sigma_min, sigma_factor=sigma_factor,
+        return rigidity_limit(float(np.median(nearest)), sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor,
                               rigid_ratio=rigid_ratio)
 
     def moving_pairs(self, weights: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -135,6 +138,7 @@ def still_trials(
     bounds: tuple[tuple[int, int], ...],
     *,
     white_noise: float,
+    sigma: float | None = None,
     sigma_min: float = 0.003,
     sigma_factor: float = 2.0,
     rigid_ratio: float = 3.0,
@@ -152,7 +156,7 @@ def still_trials(
     if x.shape[1] < 3:
         return ()
     motion = _RelativeMotion(x, seen, white_noise)
-    limit = motion.limit(sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
+    limit = motion.limit(sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
     if limit is None:
         return ()
     weights = np.stack([((frames >= a) & (frames < b)).astype(float) for a, b in bounds])
@@ -172,6 +176,7 @@ def left_out_markers(
     trial: Trial,
     *,
     white_noise: float,
+    sigma: float | None = None,
     sigma_min: float = 0.003,
     sigma_factor: float = 2.0,
     rigid_ratio: float = 3.0,
@@ -179,8 +184,8 @@ def left_out_markers(
     """The markers of ``trial`` (metres) that the motion cannot place, with the reason.
 
     ``white_noise`` is the recording's white measurement noise (per coordinate, metres:
-    :func:`jaxskel.segment.white_noise`); ``sigma_min``, ``sigma_factor`` and ``rigid_ratio``
-    are the segmentation's settings, which fix the rigidity limit. Returns an empty
+    :func:`jaxskel.segment.white_noise`); ``sigma``, ``sigma_min``, ``sigma_factor`` and
+    ``rigid_ratio`` are the segmentation's settings, which fix the rigidity limit. Returns an empty
     :class:`LeftOut` when every marker can be grouped, or when nothing in the recording
     moves relative to anything else.
     """
@@ -191,7 +196,7 @@ def left_out_markers(
     if m < 3:
         return LeftOut({})
     motion = _RelativeMotion(x, seen, white_noise)
-    limit = motion.limit(sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
+    limit = motion.limit(sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor, rigid_ratio=rigid_ratio)
     if limit is None:
         return LeftOut({})
     moving_pairs, n_pairs = motion.moving_pairs(seen.T.astype(float), limit)  # over each marker's frames

@@ -151,6 +151,13 @@ def white_noise(x: np.ndarray, *, order: int = _NOISE_DIFFERENCE_ORDER) -> float
     return float(np.median(d) / np.sqrt(math.comb(2 * k, k) * _CHI2_3_MEDIAN))
 
 
+def affinity_scale(noise_floor: float, *, sigma: float | None, sigma_min: float, sigma_factor: float) -> float:
+    """The affinity scale (metres): ``sigma`` when given, else ``max(sigma_min, sigma_factor *
+    noise_floor)`` (``noise_floor``: the median over markers of their smallest distance std,
+    white noise taken out). The rigidity limit is ``rigid_ratio`` times it."""
+    return float(sigma) if sigma is not None else max(float(sigma_min), float(sigma_factor) * float(noise_floor))
+
+
 def _without_noise(a: np.ndarray, noise: float) -> np.ndarray:
     """Distance std-devs with ``noise`` (per coordinate, on both markers) taken out."""
     return np.sqrt(np.maximum(a * a - 2.0 * noise * noise, 0.0))
@@ -579,7 +586,7 @@ def segment_markers(
     # result keeps A as measured, with a limit restated in its terms.
     noise = white_noise(trial.positions)
     a_med_c = _without_noise(a_med, noise)
-    sig = float(sigma) if sigma is not None else max(sigma_min, sigma_factor * noise_floor(a_med_c, observed))
+    sig = affinity_scale(noise_floor(a_med_c, observed), sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor)
     w_med = _affinity(np.nan_to_num(a_med_c), observed, sig)
     spectrum = _normalised_spectrum(w_med, min(m, max_segments + 2))
     gap_choice = _eigengap(spectrum, max_segments)

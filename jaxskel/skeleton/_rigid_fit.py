@@ -346,11 +346,11 @@ def _place_hinges(
     # oblique axis passes pairs of surface markers (two midfoot markers for an ankle).
     straddle = np.full((n_joints, 2), -1)
     placed = np.zeros(n_joints)
+    n_used = sum(len(m) for m in members)
     for j in np.flatnonzero(movable):
         if axis_along_a_bone(edges, j, points, axes):
             continue
         ids, along, off = [], [], []
-        n_used = sum(len(m) for m in members)
         # a landmark nearer this joint than any other, once, from the parent's frame (else the child's)
         for k in np.flatnonzero(landmark_joint == j):
             for side in (0, 1):
