@@ -7,6 +7,8 @@ from __future__ import annotations
 from ._bvh import BvhData, export_bvh, read_bvh
 from ._format import ResultFile, SCHEMA_VERSION, load_result
 from ._result import SkeletonResult
+from ._skeleton_file import load_skeleton
+from ._tracked import TrackedTrial
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
@@ -16,6 +18,6 @@ from ._summary import (
 )
 
 __all__ = [
-    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "export_bvh", "load_result",
-    "read_bvh",
+    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "TrackedTrial", "export_bvh", "load_result",
+    "load_skeleton", "read_bvh",
 ]
