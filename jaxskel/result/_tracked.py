@@ -105,8 +105,8 @@ class TrackedTrial:
         p95 = 1e3 * float(np.percentile(rms[seen], 95)) if seen.any() else float("nan")
         ik = "converged" if self.motion.converged else "hit its step limit in some frames"
         lines = [
-            f"{self.name}: {self.n_frames} frames at {self.trial.rate:g} Hz on the calibration skeleton "
-            f"({self.skeleton.n_segments} segments, {len(self.skeleton.marker_labels)} markers)",
+            (f"{self.name}: {self.n_frames} frames at {self.trial.rate:g} Hz on the calibration skeleton "
+             f"({self.skeleton.n_segments} segments, {len(self.skeleton.marker_labels)} markers)"),
             f"  residual: median {median:.2f} mm, 95th percentile {p95:.2f} mm; IK {ik}",
         ]
         if self.missing_markers:
