@@ -71,7 +71,6 @@ from scipy.spatial.transform import Rotation
 from .._errors import InputError
 from .._version import __version__
 from ..io import atomic_output, check_output, rotation_between_axes
-from ..segment import names_from_markers
 
 if TYPE_CHECKING:
     from ..skeleton import Motion, Skeleton
@@ -276,9 +275,9 @@ def export_osim(
     up_axis
         The lab's up axis, one of ``x, y, z, -x, -y, -z`` (:func:`opensim_frame`).
     segment_names
-        Body names, one per segment (default: readable names from the marker labels,
-        :func:`jaxskel.segment.names_from_markers`), made valid OpenSim names
-        (:func:`opensim_names`); they must stay distinct.
+        Body names, one per segment (default: :meth:`Skeleton.names`, the skeleton's
+        segment names or readable names from its marker labels), made valid OpenSim names
+        (:func:`opensim_names`); given names must stay distinct.
     model_name
         The model's name.
 
@@ -289,8 +288,7 @@ def export_osim(
     rot = opensim_frame(up_axis)
     n_seg = skeleton.n_segments
     if segment_names is None:
-        names = opensim_names(names_from_markers(skeleton.marker_labels, skeleton.marker_segment, n_seg),
-                              reserved=("ground",))
+        names = opensim_names(skeleton.names(), reserved=("ground",))
     else:
         names = tuple(_valid_name(v) for v in segment_names)
         if len(names) != n_seg or len(set(names)) != n_seg or "ground" in names:
