@@ -15,13 +15,12 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from helpers import true_joint_index, truth_motion, truth_skeleton
 from scipy.spatial.transform import Rotation
 
 import jaxskel
 from jaxskel import InputError, synth
 from jaxskel.result import export_osim, opensim_frame, opensim_names, to_opensim_frame
-from jaxskel.segment import names_from_markers
-from jaxskel.skeleton import Motion, Skeleton
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
@@ -39,30 +38,14 @@ def osim():
 
 # ----------------------------------------------------------------------------- skeletons
 def _truth_skeleton_and_motion(body, duration=1.0, seed=0):
-    """The synthetic ground truth as a Skeleton and Motion, hinge joints given their axes."""
+    """The synthetic ground truth as a Skeleton (its hinge joints given their axes) and Motion."""
     trial, truth = synth.simulate(body, "calibration", duration=duration, seed=seed)
-    n_seg = len(truth.segment_names)
     hinge = np.full((truth.n_joints, 3), np.nan)
     for j, kind in enumerate(truth.joint_types):
         if kind == "hinge":
             hinge[j] = truth.joint_axes[j][0]
-    skeleton = Skeleton(
-        n_segments=n_seg, edges=truth.edges, root=truth.root, marker_labels=trial.labels,
-        marker_segment=truth.marker_segment, marker_offsets=truth.marker_offsets,
-        joint_offsets=truth.joint_offsets, bones=truth.bones, bone_lengths=truth.bone_lengths,
-        bone_segment=truth.bone_segment, segment_lengths=np.full(n_seg, np.nan),
-        marker_rms=np.zeros(trial.n_markers), nonrigid_markers=(), diagnostics={"hinge_axis": hinge.tolist()},
-    )
-    quats = Rotation.from_matrix(truth.segment_rotations.reshape(-1, 3, 3)).as_quat(scalar_first=True)
-    motion = Motion(
-        root_position=truth.segment_translations[:, truth.root],
-        rotations=quats.reshape(trial.n_frames, n_seg, 4),
-        segment_translations=truth.segment_translations, joint_positions=truth.joint_positions,
-        fitted_markers=truth.clean_positions, marker_rms=np.zeros(trial.n_frames),
-        segment_observed=np.ones((trial.n_frames, n_seg), bool), steps=np.zeros(trial.n_frames, int),
-        result=np.zeros(trial.n_frames, int), converged=True, marker_labels=trial.labels, rate=trial.rate,
-    )
-    return skeleton, motion, truth
+    skeleton = dataclasses.replace(truth_skeleton(trial, truth), diagnostics={"hinge_axis": hinge.tolist()})
+    return skeleton, truth_motion(trial, truth), truth
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +114,7 @@ def test_the_xml_holds_one_body_per_segment_joints_and_markers(truth_body, tmp_p
     assert _floats(model.findtext("gravity")).tolist() == [0.0, -9.80665, 0.0]
     text = model.findtext("credits") + model.findtext("publications")
     assert "up axis z" in text and "PLACEHOLDERS" in text and "1 0 0; 0 0 1; 0 -1 0" in text
-    names = opensim_names(names_from_markers(skeleton.marker_labels, skeleton.marker_segment, skeleton.n_segments))
+    names = opensim_names(skeleton.names())
     bodies = model.find("BodySet/objects")
     assert [b.get("name") for b in bodies] == list(names)
     assert all(b.findtext("mass") == "1" for b in bodies)
@@ -179,6 +162,17 @@ def test_unused_markers_are_left_out_and_the_rest_pose_is_all_zero(truth_body, t
     assert [m.get("name") for m in model.iter("Marker")] == list(skeleton.marker_labels[1:])
     assert all(float(x.findtext("default_value")) == 0.0 for x in model.iter("Coordinate"))
     assert "rest pose" in model.findtext("credits")
+
+
+def test_bodies_are_named_by_the_skeleton_or_by_segment_names(truth_body, tmp_path):
+    skeleton, _, truth = truth_body
+    named = dataclasses.replace(skeleton, segment_names=truth.segment_names)
+    model = ET.parse(export_osim(named, tmp_path / "named.osim")).getroot().find("Model")
+    assert tuple(b.get("name") for b in model.iter("Body")) == truth.segment_names
+    assert model.find("JointSet/objects")[0].get("name") == "ground-pelvis"
+    given = [f"part {i}" for i in range(skeleton.n_segments)]
+    model = ET.parse(export_osim(named, tmp_path / "given.osim", segment_names=given)).getroot().find("Model")
+    assert [b.get("name") for b in model.iter("Body")] == [f"part_{i}" for i in range(skeleton.n_segments)]
 
 
 def test_a_frame_from_the_end_is_recorded_as_its_index(truth_body, tmp_path):
@@ -236,7 +230,7 @@ def test_the_model_loads_in_opensim(osim, fitted, tmp_path):
     skeleton = result.skeleton
     pins = _pins(skeleton)
     # jaxskel finds the knees' and elbows' hinge axes on this trial
-    hinge_joints = {j for j in range(skeleton.n_joints) if truth.joint_types[_true_joint(result, truth, j)] == "hinge"}
+    hinge_joints = {j for j in range(skeleton.n_joints) if truth.joint_types[true_joint_index(result, trial, truth, j)] == "hinge"}
     assert hinge_joints <= pins, (hinge_joints, pins)
     path = export_osim(skeleton, tmp_path / "fit.osim", motion=result.motion, frame=10)
     model = osim.Model(str(path))
@@ -250,14 +244,6 @@ def test_the_model_loads_in_opensim(osim, fitted, tmp_path):
     names = [model.getMarkerSet().get(m).getName() for m in range(model.getMarkerSet().getSize())]
     assert names == list(trial.labels)
     np.testing.assert_allclose(_vec(model.getGravity()), [0.0, -9.80665, 0.0])
-
-
-def _true_joint(result, truth, j):
-    """The true joint between the segments that carry the markers of fitted joint ``j``."""
-    seg = result.skeleton.marker_segment
-    true_seg = [int(np.bincount(truth.marker_segment[seg == s]).argmax()) for s in range(result.skeleton.n_segments)]
-    p, c = (true_seg[s] for s in result.skeleton.edges[j])
-    return next(k for k, (a, b) in enumerate(truth.edges) if {a, b} == {p, c})
 
 
 @pytest.mark.parametrize("up", ["z", "-y", "x"])
