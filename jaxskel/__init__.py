@@ -59,6 +59,7 @@ _LAZY = {
     "SkeletonResult": "result",
     "load_result": "result",
     "load_skeleton": "result",
+    "export_osim": "result",
 }
 
 #: The stages, each a namespace of its own: ``jaxskel.segment.segment_markers``, ...
