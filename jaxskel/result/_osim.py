@@ -23,7 +23,8 @@ ElementTree only: OpenSim itself is not needed to write the file):
   -> child) is a ``BallJoint`` whose offset frames sit at ``C joint_offsets[j, 0]`` in the
   parent body and ``C joint_offsets[j, 1]`` (zero) in the child, unrotated; where the
   skeleton has a hinge axis ``a`` for it (``diagnostics["hinge_axis"][j]`` finite, in the
-  parent frame, and ``j`` not in ``diagnostics["hinges_unmoved"]``) it is a ``PinJoint``,
+  parent frame, and ``j`` not in ``diagnostics["hinges_unmoved"]``; with a ``motion``, also
+  turning off that axis by at most :data:`PIN_MAX_OFF_AXIS` in 95 % of its frames) it is a ``PinJoint``,
   which turns about the Z axis of its joint frames: both offset frames are then rotated
   by ``Q``, an orthonormal basis of the body frame with third column ``C a / |C a|``
   (in the rest pose the child's axes equal the parent's, so ``a`` is the same vector in
@@ -76,7 +77,7 @@ if TYPE_CHECKING:
     from ..skeleton import Motion, Skeleton
 
 __all__ = [
-    "PLACEHOLDER_INERTIA", "PLACEHOLDER_MASS", "export_osim", "opensim_frame", "opensim_names",
+    "PIN_MAX_OFF_AXIS", "PLACEHOLDER_INERTIA", "PLACEHOLDER_MASS", "export_osim", "opensim_frame", "opensim_names",
     "to_opensim_frame",
 ]
 
@@ -84,6 +85,10 @@ __all__ = [
 PLACEHOLDER_MASS = 1.0
 #: Principal moments of every body's inertia about its centre of mass (kg m^2): a placeholder.
 PLACEHOLDER_INERTIA = 0.01
+
+#: A hinge axis becomes a ``PinJoint`` only if the motion (when given) turns the joint off
+#: that axis by at most this much (radians, 95th percentile of its frames); else a ``BallJoint``.
+PIN_MAX_OFF_AXIS = float(np.deg2rad(10.0))
 
 #: OpenSim's document version for a 4.0 model.
 _DOCUMENT_VERSION = "40000"
@@ -177,6 +182,29 @@ def _hinge_axes(skeleton: Skeleton) -> np.ndarray:
     axes[unmoved] = np.nan
     axes[~(np.isfinite(axes).all(axis=1) & (np.linalg.norm(np.nan_to_num(axes), axis=1) > 0))] = np.nan
     return axes
+
+
+def _off_axis_turns(skeleton: Skeleton, motion: Motion, axes: np.ndarray) -> np.ndarray:
+    """(F, J) radians: how far each joint's relative rotation is from a turn about its hinge
+    axis (``axes`` (J, 3), parent frame; NaN rows give NaN), frames where both segments
+    are posed."""
+    quats = np.asarray(motion.rotations, dtype=float)
+    n_frames = quats.shape[0]
+    out = np.full((n_frames, len(axes)), np.nan)
+    seg = Rotation.from_quat(np.nan_to_num(quats.reshape(-1, 4), nan=0.0) + [[1e-300, 0, 0, 0]],
+                             scalar_first=True).as_matrix().reshape(n_frames, -1, 3, 3)
+    finite = np.isfinite(quats).all(axis=-1)
+    for j, (p, c) in enumerate(np.asarray(skeleton.edges, dtype=int).tolist()):
+        if not np.isfinite(axes[j]).all():
+            continue
+        q = _axis_frame(axes[j])
+        m = q.T @ (np.swapaxes(seg[:, p], -1, -2) @ seg[:, c]) @ q  # (F, 3, 3)
+        t = np.arctan2(m[:, 1, 0] - m[:, 0, 1], m[:, 0, 0] + m[:, 1, 1])
+        about = Rotation.from_rotvec(np.stack([np.zeros_like(t), np.zeros_like(t), t], axis=1)).as_matrix()
+        rest = np.swapaxes(about, -1, -2) @ m
+        cos = np.clip((np.trace(rest, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+        out[:, j] = np.where(finite[:, p] & finite[:, c], np.arccos(cos), np.nan)
+    return out
 
 
 def _pose(skeleton: Skeleton, motion: Motion, frame: int, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -299,6 +327,14 @@ def export_osim(
     edges = np.asarray(skeleton.edges, dtype=int)
     root = int(skeleton.root)
     axes = _hinge_axes(skeleton)
+    if motion is not None and np.isfinite(axes).any():
+        # a hinge the motion turns well off its axis (a universal joint whose centre slid
+        # like a hinge's) is exported as a ball: a pin would force that turn out
+        off = _off_axis_turns(skeleton, motion, axes)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: joints without an axis
+            typical = np.nanpercentile(off, 95, axis=0)
+        axes[np.isfinite(typical) & (typical > PIN_MAX_OFF_AXIS)] = np.nan
     joint_names = opensim_names([f"{names[p]}-{names[c]}" for p, c in edges], reserved=[f"ground-{names[root]}"])
     root_joint = f"ground-{names[root]}"
 
