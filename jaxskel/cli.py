@@ -120,7 +120,12 @@ def _parser() -> argparse.ArgumentParser:
     def output_options(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
-        sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
+        sp.add_argument("--trc", type=Path, default=None,
+                        help="export the fitted (gap-filled) markers as TRC (with --osim: in the model's frame, Y up, "
+                        "and names, ready for OpenSim's inverse kinematics)")
+        sp.add_argument("--osim", type=Path, default=None,
+                        help="export the skeleton as an OpenSim 4 model (.osim): a body per segment, ball joints "
+                        "(pin joints at hinges), the markers; Y up; mass and inertia are placeholders")
         sp.add_argument("--parameterize", action="store_true",
                         help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
         sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -189,7 +194,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
-FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc"}
+FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc", "--osim": "osim"}
 
 
 def load_options(parser: argparse.ArgumentParser) -> None:
@@ -330,10 +335,12 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 
     quiet = getattr(args, "quiet", False)
     options = options_from_args(args)
-    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc}, args.overwrite)
+    osim = getattr(args, "osim", None)
+    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc, "--osim": osim},
+                   args.overwrite)
     if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
-        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc))
-                 if on]
+        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc),
+                                       ("--osim", osim)) if on]
         if asked:
             raise jaxskel.InputError(
                 f"{', '.join(asked)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
@@ -345,6 +352,10 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if not quiet:
         for path, trial in zip(inputs, trials):
             _print_load_report(path, trial)
+    if osim is not None and any(t.up_axis == "unknown" for t in trials):
+        raise jaxskel.InputError(
+            "--osim turns the recording's up axis to OpenSim's Y, but it is unknown here: give it with --up-axis"
+        )
     result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
     extra_groups = {}
     if args.parameterize:
@@ -374,8 +385,16 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         if result.motion is None:
             raise jaxskel.InputError("--trc needs the rigid skeleton and IK; drop --no-rigid")
         fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
+        if osim is not None:  # the model's frame and names: the TRC OpenSim's IK reads with the model
+            from .result import opensim_names, to_opensim_frame
+
+            fitted = fitted.replace(positions=to_opensim_frame(fitted.positions, fitted.up_axis),
+                                    labels=opensim_names(fitted.labels), up_axis="y")
         jaxskel.save_trial(fitted, args.trc, overwrite=args.overwrite)
         written.append(args.trc)
+    if osim is not None:
+        result.export_osim(osim, overwrite=args.overwrite)
+        written.append(osim)
     if not quiet:
         print(result.summary())
         print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
