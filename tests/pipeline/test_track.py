@@ -292,3 +292,25 @@ def test_track_command_refuses_fit_settings_and_colliding_outputs(fitted_linkage
     code = main(["track", str(path), str(same_name), "-o", str(path.parent), "--overwrite", "--quiet"])
     assert code == 2 and str(path) in capsys.readouterr().err
     assert path.read_bytes() == before
+
+
+def test_track_on_dask_workers_writes_the_same_files_and_names_each_trials_warnings(fitted_linkage, tmp_path, capsys):
+    distributed = pytest.importorskip("distributed")
+    result, path, files = fitted_linkage
+    lacking = tmp_path / "lacking.c3d"
+    take = jaxskel.load(files[1])
+    jaxskel.save_trial(take.drop_markers([take.labels[0]]), lacking)
+    local = tmp_path / "local"
+    assert main(["track", str(path), str(files[0]), "-o", str(local), "--quiet"]) == 0
+    capsys.readouterr()
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        out = tmp_path / "dask"
+        code = main(["track", str(path), str(files[0]), str(lacking), "-o", str(out), "--quiet",
+                     "--scheduler", cluster.scheduler_address])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert f"jaxskel: warning (TrackingWarning) [lacking]: the trial lacks 1 of the skeleton's markers ({take.labels[0]})" in err
+    with h5py.File(local / f"{files[0].stem}.h5") as a, h5py.File(out / f"{files[0].stem}.h5") as b:
+        np.testing.assert_array_equal(a["motion/joint_positions"][()], b["motion/joint_positions"][()])
+    with h5py.File(out / "lacking.h5") as f:
+        assert [v.decode() for v in f["markers/missing"][()]] == [take.labels[0]]
