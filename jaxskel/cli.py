@@ -512,6 +512,8 @@ def _info(path: Path, args: argparse.Namespace) -> int:
             r = jaxskel.load_result(path)
             print(f"result file {path} (schema {r.attrs['schema_version']}, jaxskel {r.attrs['jaxskel_version']})")
             print(f"  source: {r.attrs['source']}  rate: {r.attrs['rate']} Hz")
+            if r.attrs.get("kind") == "tracked":
+                print(f"  tracked on the skeleton of {r.attrs.get('calibration') or 'a skeleton given in memory'}")
             root = int(r.topology.root)
             print(f"  {len(r.markers.labels)} input markers, {len(r.segments.names)} segments, "
                   f"{len(r.topology.edges)} joints, root {r.segments.names[root]} (segment {root})")

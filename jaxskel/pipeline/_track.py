@@ -314,7 +314,7 @@ def _skeleton_of(skeleton: Any) -> tuple[Skeleton, str]:
     if isinstance(skeleton, Skeleton):
         return skeleton, ""
     if isinstance(skeleton, (str, os.PathLike)):
-        return load_skeleton(skeleton), str(skeleton)
+        return load_skeleton(skeleton), os.path.abspath(skeleton)
     from ..result import SkeletonResult
 
     if isinstance(skeleton, SkeletonResult):
