@@ -92,3 +92,41 @@ def test_a_second_take_tracked_on_the_calibration_skeleton(tmp_path):
     assert new.missing_markers == () and new.segment_posed.mean() > 0.95
     back = jaxskel.load_skeleton(batch[1].output)
     assert back.bone_lengths.tobytes() == result.skeleton.bone_lengths.tobytes()
+
+
+def test_opensim_inverse_kinematics_agrees_on_a_real_recording(tmp_path):
+    """The OpenSim model of the bundled trial's skeleton: OpenSim's own IK of the trial's
+    markers (turned into the model's frame and names) leaves the marker error jaxskel's IK
+    leaves, frame by frame."""
+    osim = pytest.importorskip("opensim", reason="the opensim package (pip install opensim) is not installed",
+                               exc_type=ImportError)
+    osim.Logger.setLevelString("Warn")  # no line per IK frame
+    from jaxskel.result import export_osim, opensim_names, to_opensim_frame
+
+    result = _fit("KneeltoProne01 (bundled)")
+    skeleton, frames = result.skeleton, 240
+    model_path = export_osim(skeleton, tmp_path / "subject.osim", motion=result.motion,
+                             frame=int(skeleton.diagnostics["rest_frame"]), up_axis=result.trial.up_axis)
+    column = result.trial.marker_index(skeleton.marker_labels)
+    take = result.trial.select_markers(list(skeleton.marker_labels))
+    take = take.replace(positions=to_opensim_frame(np.asarray(take.positions)[:frames], take.up_axis),
+                        labels=opensim_names(take.labels), up_axis="y")
+    trc = jaxskel.save_trial(take, tmp_path / "take.trc")
+    tool = osim.InverseKinematicsTool()
+    tool.setName("take")
+    model = osim.Model(str(model_path))  # the tool does not own it: keep it alive while it runs
+    tool.setModel(model)
+    tool.setMarkerDataFileName(str(trc))
+    tool.setStartTime(float(take.times[0]))
+    tool.setEndTime(float(take.times[-1]))
+    tool.setResultsDir(str(tmp_path))
+    tool.setOutputMotionFileName(str(tmp_path / "take.mot"))
+    tool.set_accuracy(1e-6)
+    assert tool.run()
+    theirs = osim.TimeSeriesTable(str(tmp_path / "take_ik_marker_errors.sto")).getDependentColumn(
+        "marker_error_RMS").to_numpy()
+    ours = np.asarray(result.motion.marker_rms)[:frames]
+    assert column.shape == (len(skeleton.marker_labels),) and len(theirs) == frames
+    print(f"\nKneeltoProne01, {frames} frames: OpenSim IK {1e3 * theirs.mean():.2f} mm, jaxskel {1e3 * ours.mean():.2f} mm")
+    assert abs(theirs.mean() - ours.mean()) < 0.002
+    assert np.median(np.abs(theirs - ours)) < 0.002

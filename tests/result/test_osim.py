@@ -33,7 +33,9 @@ def osim():
         import opensim  # noqa: F401
     except ImportError as err:  # the message says why (not installed, a library missing, ...)
         reason += f": {type(err).__name__}: {err}"
-    return pytest.importorskip("opensim", reason=reason, exc_type=ImportError)
+    module = pytest.importorskip("opensim", reason=reason, exc_type=ImportError)
+    module.Logger.setLevelString("Warn")  # no line per IK frame
+    return module
 
 
 # ----------------------------------------------------------------------------- skeletons
