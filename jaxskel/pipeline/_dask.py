@@ -22,9 +22,10 @@ rerun retries them.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,7 @@ from .._errors import InputError
 from ._options import FitOptions
 from ..io import Trial
 
-__all__ = ["run_distributed"]
+__all__ = ["dask_client", "run_distributed"]
 
 
 def _pack(value: Any) -> Any:
@@ -104,22 +105,12 @@ def run_distributed(
     group_size: int | None = None,
 ) -> None:
     """Fit ``items`` on a Dask cluster (module docstring); report each trial to ``on_outcome``."""
-    try:
-        from distributed import Client, as_completed
-    except ImportError:  # pragma: no cover - depends on the environment
-        raise InputError(
-            'a scheduler needs Dask distributed: pip install "jaxskel[distributed]" (or "dask[distributed]")'
-        ) from None
     from ._local import TrialOutcome, failed
     from ._trial_warnings import emit, unpack
 
-    own = not isinstance(scheduler, Client)
-    try:
-        client = Client(scheduler, timeout="30s") if own else scheduler
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
-    try:
-        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    with dask_client(scheduler) as (client, n_workers):
+        from distributed import as_completed  # importable: dask_client checked
+
         # one group per worker, at most batch_size trials each: batching within a worker saves
         # more than finer load balancing would (bench/bench_batch.py: docs/bench/fit_batch_1_8.json)
         size = group_size or max(1, min(batch_size, math.ceil(len(items) / n_workers)))
@@ -152,6 +143,25 @@ def run_distributed(
                 emit(it.name, caught)  # the worker's warnings, here, naming the trial
                 on_outcome(it, TrialOutcome(it.name, it.subject, status, error=row.get("error", ""),
                                             output=out, row=row, traceback=trace, warnings=caught))
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: Any) -> Iterator[tuple[Any, int]]:
+    """``(client, number of workers)`` of a Dask ``scheduler``: an address (a client made here,
+    closed on exit) or a ``distributed.Client`` (used as it is)."""
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise InputError(
+            'a scheduler needs Dask distributed: pip install "jaxskel[distributed]" (or "dask[distributed]")'
+        ) from None
+    own = not isinstance(scheduler, Client)
+    try:
+        client = Client(scheduler, timeout="30s") if own else scheduler
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
+    try:
+        yield client, max(1, len(client.scheduler_info().get("workers", {})))
     finally:
         if own:
             client.close()

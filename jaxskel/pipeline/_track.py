@@ -604,20 +604,12 @@ def _track_distributed(items: list[Item], skeleton: Skeleton, calibration: str, 
                        done: Callable[[Item, TrialOutcome], None]) -> None:
     """Track ``items`` on a Dask cluster: one group of trials per task (at most ``batch_size``,
     one group per worker when there are few)."""
-    try:
-        from distributed import Client, as_completed
-    except ImportError:  # pragma: no cover - depends on the environment
-        raise InputError('a scheduler needs Dask distributed: pip install "jaxskel[distributed]"') from None
-    from ._dask import _pack
+    from ._dask import _pack, dask_client
     from ._trial_warnings import unpack
 
-    own = not isinstance(scheduler, Client)
-    try:
-        client = Client(scheduler, timeout="30s") if own else scheduler
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
-    try:
-        n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    with dask_client(scheduler) as (client, n_workers):
+        from distributed import as_completed  # importable: dask_client checked
+
         size = max(1, min(batch_size, math.ceil(len(items) / n_workers)))
         state = _pack_skeleton(skeleton)
         futures = {}
@@ -640,6 +632,3 @@ def _track_distributed(items: list[Item], skeleton: Skeleton, calibration: str, 
                 status = row.get("status", "failed")
                 done(it, TrialOutcome(it.name, "", status, error=error, output=it.output if status == "ok" else None,
                                       row=row, warnings=unpack(packed_warnings)))
-    finally:
-        if own:
-            client.close()
