@@ -5,7 +5,9 @@ inverse kinematics fits the trial as well as jaxskel's own).
 Two skeletons: the synthetic full body's ground truth (no solver; its knees and elbows
 turn about their hinge axes exactly, so their pin joints reproduce the motion exactly),
 and a skeleton fitted to a short trial of it (jaxskel finds hinge axes for the knees and
-elbows; its inverse kinematics poses every joint as a ball).
+elbows; its inverse kinematics poses every joint as a ball). The fitted skeleton's cases
+need a minute-long fit and run with ``pytest -m extended``; OpenSim's IK on a fitted real
+skeleton is checked by default in tests/test_real_ik.py.
 """
 
 from __future__ import annotations
@@ -233,6 +235,7 @@ def _markers_in_ground(osim, path, labels):
     return model, np.array([_vec(markers.get(name).getLocationInGround(state)) for name in labels])
 
 
+@pytest.mark.extended  # a full-body fit (about a minute on 2 cores); the true skeleton's cases run by default
 def test_the_model_loads_in_opensim(osim, fitted, tmp_path):
     trial, truth, result = fitted
     skeleton = result.skeleton
@@ -271,6 +274,7 @@ def test_default_pose_puts_the_markers_where_the_motion_does(osim, truth_body, t
     np.testing.assert_allclose(where, to_opensim_frame(motion.fitted_markers[frame], up), atol=1e-6)
 
 
+@pytest.mark.extended  # a full-body fit (about a minute on 2 cores); the true skeleton's cases run by default
 def test_default_pose_of_a_fitted_motion(osim, fitted, tmp_path):
     """jaxskel's inverse kinematics poses every joint as a ball: exported with ball joints
     only, the default pose is its frame to 1e-6 m. With pins, so are the markers of every
@@ -292,12 +296,8 @@ def test_default_pose_of_a_fitted_motion(osim, fitted, tmp_path):
     assert off[~under].max() < 1e-6 and off[under].max() < 0.03, (off[~under].max(), off[under].max())
 
 
-def test_opensim_inverse_kinematics_agrees_with_jaxskel(osim, fitted, tmp_path):
-    """The acceptance test: OpenSim's inverse kinematics of the trial (its markers turned
-    into the OpenSim frame) with the exported model leaves a mean RMS marker error within
-    2 mm of jaxskel's own inverse kinematics residual."""
-    trial, _, result = fitted
-    model_path = export_osim(result.skeleton, tmp_path / "fit.osim", motion=result.motion, frame=0)
+def _opensim_ik_rms(osim, model_path, trial, tmp_path):
+    """OpenSim's per-frame marker RMS for ``trial`` (its markers turned into the OpenSim frame)."""
     trc = jaxskel.save_trial(trial.replace(positions=to_opensim_frame(trial.positions, trial.up_axis)), tmp_path / "x.trc")
     times = trial.times
     ik = osim.InverseKinematicsTool()
@@ -314,6 +314,33 @@ def test_opensim_inverse_kinematics_agrees_with_jaxskel(osim, fitted, tmp_path):
     errors = osim.TimeSeriesTable(str(tmp_path / "jaxskel_ik_marker_errors.sto"))
     rms = errors.getDependentColumn("marker_error_RMS").to_numpy()
     assert len(rms) == trial.n_frames
+    return rms
+
+
+def test_opensim_inverse_kinematics_agrees_with_jaxskel_on_the_true_skeleton(osim, tmp_path):
+    """The acceptance test on the body's own skeleton (pins at its hinges): OpenSim's inverse
+    kinematics of a noisy trial with the exported model leaves the marker error jaxskel's
+    inverse kinematics leaves, within 2 mm on average and frame by frame."""
+    body = synth.full_body(seed=0)
+    trial, truth = synth.simulate(body, "calibration", duration=2.0, rate=50.0, noise=0.001, seed=4)
+    skeleton, _, _ = _truth_skeleton_and_motion(body, duration=2.0, seed=4)
+    motion = jaxskel.skeleton.inverse_kinematics(skeleton, trial)
+    model_path = export_osim(skeleton, tmp_path / "truth.osim", motion=motion, frame=0)
+    assert _exported_pins(model_path)  # the hinges are pins
+    rms = _opensim_ik_rms(osim, model_path, trial, tmp_path)
+    ours = np.asarray(motion.marker_rms)
+    print(f"\nOpenSim IK mean marker RMS {1e3 * rms.mean():.2f} mm, jaxskel IK {1e3 * ours.mean():.2f} mm")
+    assert abs(rms.mean() - ours.mean()) < 0.002 and np.percentile(np.abs(rms - ours), 95) < 0.002
+
+
+@pytest.mark.extended  # a full-body fit (about a minute on 2 cores); the true skeleton's cases run by default
+def test_opensim_inverse_kinematics_agrees_with_jaxskel(osim, fitted, tmp_path):
+    """The acceptance test: OpenSim's inverse kinematics of the trial (its markers turned
+    into the OpenSim frame) with the exported model leaves a mean RMS marker error within
+    2 mm of jaxskel's own inverse kinematics residual."""
+    trial, _, result = fitted
+    model_path = export_osim(result.skeleton, tmp_path / "fit.osim", motion=result.motion, frame=0)
+    rms = _opensim_ik_rms(osim, model_path, trial, tmp_path)
     ours = float(np.mean(result.motion.marker_rms))
     print(f"\nOpenSim IK mean marker RMS {1e3 * float(np.mean(rms)):.2f} mm, jaxskel IK {1e3 * ours:.2f} mm")
     assert abs(float(np.mean(rms)) - ours) < 0.002, (float(np.mean(rms)), ours)
