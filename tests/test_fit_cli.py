@@ -136,6 +136,7 @@ def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, li
     assert list(back.diagnostics.cleaning.duplicate_of) == [trial.labels[0]]
 
 
+@pytest.mark.extended  # about 2 min on 2 cores; the split search's other cases run by default
 def test_a_count_that_does_not_help_does_not_end_the_split_search():
     """A random 10-segment tree where the eigengap (8) joins two pairs of segments, each
     joint moving its markers little. One more segment cuts one pair but leaves the other

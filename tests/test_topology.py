@@ -331,6 +331,7 @@ def test_rigid_motion_and_marker_order_invariance():
     assert sorted(shuffled.bone_lengths().values()) == pytest.approx(sorted(ref.bone_lengths().values()), abs=1e-4)
 
 
+@pytest.mark.extended  # about 2 min on 2 cores; test_a_walk_alone_names_the_joints_it_cannot_place runs by default
 def test_walk_leaves_wrists_unjointed_and_a_calibration_trial_recovers_them():
     """The issue's walking case. In a walk the wrists barely turn (< 2 degrees), so the
     hand's markers are rigid with the forearm's: fitted alone, no segment separates a hand
