@@ -184,6 +184,52 @@ def up_vector(up_axis: Any) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def calibration_mask(calibration: Any, n_frames: int, rate: float | None = None) -> np.ndarray | None:
+    """Frames (F,) bool of a calibration window, or None for "choose automatically".
+
+    ``calibration`` is None or "auto", a ``slice`` of frames, ``(start, stop)`` frame
+    indices (integers, stop exclusive; negative counts from the end), ``(t0, t1)``
+    seconds (floats; needs ``rate``) or a boolean mask of length F.
+    """
+    if calibration is None or (isinstance(calibration, str) and calibration == "auto"):
+        return None
+    if isinstance(calibration, slice):
+        mask = np.zeros(n_frames, bool)
+        mask[calibration] = True
+    else:
+        arr = np.asarray(calibration)
+        if arr.dtype == bool:
+            if arr.shape != (n_frames,):
+                raise InputError(f"a calibration mask must have one entry per frame ({n_frames}), got shape {arr.shape}")
+            mask = arr.copy()
+        elif arr.shape == (2,) and np.issubdtype(arr.dtype, np.number):
+            if np.issubdtype(arr.dtype, np.integer):
+                start, stop = (int(v) for v in arr)
+            else:
+                if rate is None or not rate > 0:
+                    raise InputError(
+                        f"calibration={tuple(calibration)} is a time range in seconds, but the motion's frame rate "
+                        "is unknown; give frames (integers) or pass rate="
+                    )
+                t0, t1 = (float(v) for v in arr)
+                if not (np.isfinite(t0) and np.isfinite(t1)) or t0 < 0 or t1 <= t0:
+                    raise InputError(f"calibration time range must be 0 <= t0 < t1 seconds, got {tuple(calibration)}")
+                start, stop = int(np.floor(t0 * rate)), int(np.ceil(t1 * rate))
+            mask = np.zeros(n_frames, bool)
+            mask[slice(start, stop)] = True
+        else:
+            raise InputError(
+                "calibration must be None (automatic), a slice or (start, stop) of frames, (t0, t1) seconds, "
+                f"a boolean mask per frame or a separate calibration motion; got {calibration!r}"
+            )
+    if mask.sum() < 3:
+        raise InputError(
+            f"the calibration window {calibration!r} holds {int(mask.sum())} of the motion's {n_frames} frames; "
+            "it needs at least 3 (the default pose and the main movements)"
+        )
+    return mask
+
+
 # ------------------------------------------------------------------ core (JAX)
 def default_pose_terms(x: Float[Array, "J 3"]) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
     """``(plane, ratio, spread)`` of one frame's joints and the covariance eigenvectors (ascending)."""
@@ -261,6 +307,7 @@ def _normalize_core(
     facing: Float[Array, " 3"],
     weights: Float[Array, " 3"],
     candidate_tolerance: Float[Array, ""],
+    search: Bool[Array, " F"],
 ) -> dict[str, Array]:
     """Default-pose frame, body frame, limb frames and constant offsets (module docstring)."""
     terms, vecs = jax.vmap(default_pose_terms)(joints)
@@ -274,15 +321,24 @@ def _normalize_core(
     # them, the leaves (invisible to the joint-based cost) decide: the frame whose
     # leaves sit closest to their typical posture over the candidates, with the cost
     # as a tie-breaker (it only matters when there are no leaves).
-    least = jnp.min(cost)
-    candidate = valid & (cost <= least + candidate_tolerance)
+    least = jnp.min(jnp.where(search, cost, jnp.inf))
+    candidate = valid & search & (cost <= least + candidate_tolerance)
+    # A default pose is held: of the candidates keep the stillest fifth (joint
+    # speeds), so a frame that only passes through the pose (a twist swinging
+    # through zero moves no joint) does not stand in for it.
+    rel = quat_multiply(quat_conjugate(quats[:, edges[:, 0]]), quats[:, edges[:, 1]])
+    dot = jnp.abs(jnp.sum(rel[1:] * rel[:-1], -1))
+    step = jnp.sum(2.0 * jnp.arccos(jnp.clip(dot, 0.0, 1.0)), -1)
+    speed = jnp.concatenate([step[:1], step])
+    ordered = jnp.sort(jnp.where(candidate, speed, jnp.inf))
+    slow = candidate & (speed <= ordered[(jnp.sum(candidate) - 1) // 5])
     proximal_x = joints[:, jnp.maximum(proximal, 0)]
     toward = _unit(proximal_x - origins[:, jnp.maximum(parent, 0)])
     seen = quat_rotate(quat_conjugate(quats[:, leaves]), toward[:, leaves])  # in each leaf's frame
-    typical = _unit(jax.vmap(_geometric_median, (1, None))(seen, candidate))
+    typical = _unit(jax.vmap(_geometric_median, (1, None))(seen, slow))
     leaf_off = jnp.sum((seen - typical) ** 2, axis=(1, 2))
     score = leaf_off + 1e-3 * (cost - least) / jnp.maximum(candidate_tolerance, 1e-12)
-    d = jnp.argmin(jnp.where(candidate, score, jnp.inf))
+    d = jnp.argmin(jnp.where(slow, score, jnp.inf))
 
     # Body planes at the default frame.
     x_d = joints[d]
@@ -398,6 +454,9 @@ class Normalization:
     origins_local
         (S, 3) each limb origin in its segment's coordinates, or None when the
         segment translations were not given.
+    calibration
+        (F,) the frames the default pose was searched in (all, unless a
+        calibration window was given).
     """
 
     edges: np.ndarray
@@ -419,6 +478,7 @@ class Normalization:
     main_sign: np.ndarray
     joint_offsets: np.ndarray
     origins_local: np.ndarray | None = None
+    calibration: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -477,6 +537,10 @@ def normalize_arrays(
     facing: Any = None,
     segment_translations: Float[Any, "F S 3"] | None = None,
     candidate_tolerance: float = 0.02,
+    calibration: Any = None,
+    rate: float | None = None,
+    marker_offsets: Float[Any, "M 3"] | None = None,
+    marker_segment: Int[Any, " M"] | None = None,
 ) -> Normalization:
     """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
 
@@ -504,6 +568,17 @@ def normalize_arrays(
     candidate_tolerance
         Frames whose cost exceeds the least cost by at most this much are
         default-pose candidates (see the module docstring); 0 keeps the least-cost frame.
+    calibration
+        Frames the default pose is searched in: None (all), a ``slice`` or
+        ``(start, stop)`` of frames, ``(t0, t1)`` seconds (floats, with ``rate``)
+        or a boolean mask (F,). Limb frames are still given for every frame.
+    rate
+        Frames per second (only needed for a calibration window in seconds).
+    marker_offsets, marker_segment
+        Optional (M, 3) markers in their segment's coordinates and (M,) their
+        segment (-1 or NaN offsets: unused). A leaf limb (no distal joint) with
+        markers takes its long axis from its own markers (see the module
+        docstring), and the feet decide the front; needs ``segment_translations``.
     """
     x = np.asarray(joint_positions)
     q = np.asarray(rotations)
@@ -546,6 +621,8 @@ def normalize_arrays(
                 f"segment_translations must be finite, shape {(n_frames, n_joints + 1, 3)}, got {t.shape}"
             )
     size = bucket_size(n_frames)
+    search = calibration_mask(calibration, n_frames, rate)
+    search = np.ones(n_frames, bool) if search is None else search
 
     def pad(a):
         return np.concatenate([a, np.repeat(a[-1:], size - n_frames, axis=0)]).astype(dtype)
@@ -569,6 +646,7 @@ def normalize_arrays(
         jnp.asarray(face, dtype),
         jnp.asarray([w["plane"], w["ratio"], w["spread"]], dtype),
         jnp.asarray(candidate_tolerance, dtype),
+        jnp.asarray(np.concatenate([search, np.zeros(size - n_frames, bool)])),
     )
     out = {k: np.asarray(v) for k, v in out.items()}
     d = int(out["default_frame"])
@@ -604,6 +682,7 @@ def normalize_arrays(
         main_sign=out["main_sign"],
         joint_offsets=out["joint_offsets"],
         origins_local=None if segment_translations is None else out["origins_local"],
+        calibration=search,
     )
 
 
@@ -616,13 +695,17 @@ def normalize(
     weights: Mapping[str, float] | None = None,
     facing: Any = None,
     candidate_tolerance: float = 0.02,
+    calibration: Any = None,
 ) -> Normalization:
     """Skeleton-aligned limb frames for a fitted motion (Sar Dessai et al. 2006, §3).
 
     ``skeleton`` needs ``.edges`` (J, 2) and ``.root``; ``motion`` needs
     ``.joint_positions`` (F, J, 3), ``.rotations`` (F, S, 4) and, optionally,
     ``.segment_translations`` (F, S, 3). ``up_axis`` is the recording's vertical
-    (``Trial.up_axis``); see :func:`normalize_arrays` for the other options.
+    (``Trial.up_axis``); see :func:`normalize_arrays` for the other options
+    (``motion.rate`` serves a calibration window in seconds; the skeleton's
+    ``marker_offsets`` / ``marker_segment``, when present, give the leaves'
+    own geometry).
     """
     for obj, names in ((skeleton, ("edges", "root")), (motion, ("joint_positions", "rotations"))):
         missing = [n for n in names if getattr(obj, n, None) is None]
@@ -646,6 +729,10 @@ def normalize(
         facing=facing,
         segment_translations=getattr(motion, "segment_translations", None),
         candidate_tolerance=candidate_tolerance,
+        calibration=calibration,
+        rate=getattr(motion, "rate", None),
+        marker_offsets=getattr(skeleton, "marker_offsets", None),
+        marker_segment=getattr(skeleton, "marker_segment", None),
     )
 
 
