@@ -24,8 +24,9 @@ The cost only sees joints, so it cannot tell a frame of the held default pose
 from one where only a leaf limb (hand, foot, head: no distal joint) moves, yet
 the leaf's frame is taken from the chosen frame. Frames whose cost is within
 ``candidate_tolerance`` (cost units, default 0.02) of the least cost are
-therefore all candidates, and the default-pose frame ``d`` is the candidate
-whose leaves are closest to their typical posture over the candidates (the
+therefore all candidates; a default pose is held, so only the stillest fifth
+of them (sum over joints of the relative rotation's angular step) can be chosen,
+and the default-pose frame ``d`` is the one of those whose leaves are closest to their typical posture over the candidates (the
 geometric median of the direction from the parent limb's origin to the leaf's
 joint, seen in the leaf's frame); the cost breaks ties. With tolerance 0 this
 is the paper's least-cost frame.
@@ -539,8 +540,6 @@ def normalize_arrays(
     candidate_tolerance: float = 0.02,
     calibration: Any = None,
     rate: float | None = None,
-    marker_offsets: Float[Any, "M 3"] | None = None,
-    marker_segment: Int[Any, " M"] | None = None,
 ) -> Normalization:
     """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
 
@@ -574,11 +573,6 @@ def normalize_arrays(
         or a boolean mask (F,). Limb frames are still given for every frame.
     rate
         Frames per second (only needed for a calibration window in seconds).
-    marker_offsets, marker_segment
-        Optional (M, 3) markers in their segment's coordinates and (M,) their
-        segment (-1 or NaN offsets: unused). A leaf limb (no distal joint) with
-        markers takes its long axis from its own markers (see the module
-        docstring), and the feet decide the front; needs ``segment_translations``.
     """
     x = np.asarray(joint_positions)
     q = np.asarray(rotations)
@@ -703,9 +697,7 @@ def normalize(
     ``.joint_positions`` (F, J, 3), ``.rotations`` (F, S, 4) and, optionally,
     ``.segment_translations`` (F, S, 3). ``up_axis`` is the recording's vertical
     (``Trial.up_axis``); see :func:`normalize_arrays` for the other options
-    (``motion.rate`` serves a calibration window in seconds; the skeleton's
-    ``marker_offsets`` / ``marker_segment``, when present, give the leaves'
-    own geometry).
+    (``motion.rate`` serves a calibration window in seconds).
     """
     for obj, names in ((skeleton, ("edges", "root")), (motion, ("joint_positions", "rotations"))):
         missing = [n for n in names if getattr(obj, n, None) is None]
@@ -731,8 +723,6 @@ def normalize(
         candidate_tolerance=candidate_tolerance,
         calibration=calibration,
         rate=getattr(motion, "rate", None),
-        marker_offsets=getattr(skeleton, "marker_offsets", None),
-        marker_segment=getattr(skeleton, "marker_segment", None),
     )
 
 

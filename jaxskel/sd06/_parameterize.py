@@ -6,24 +6,36 @@ and the sample is the child's unit long axis in the parent joint frame,
 ``p_j(f) = Q_j(f) m_c`` (``m_c`` = ``main_sign * e_main`` of the child): a point on
 the unit joint sphere.
 
+Calibration: the default pose, the movement filter, the axes and the axis
+count come from the calibration frames only (a given window, a separate
+calibration recording, every frame, or with "auto" each joint's main-movement
+frames); the angles are computed for every frame.
+
 Filtering and axes: :mod:`jaxskel.sd06._axes` (movement samples, direction joining /
-PCA / EM, rest direction ``r``, rest frame and ``Q_rest = Q_j(rest frame)``). A joint
-has one axis when the rotations of its movement frames relative to a reference
-frame all turn about one fixed axis (RMS deviation below ``hinge_tolerance``),
-else two; ``n_axes`` overrides this per joint.
+PCA / EM). A joint has one axis when the rotations of its movement frames
+relative to a reference frame all turn about one fixed axis: the off-axis RMS,
+with the estimated rotation noise removed (:func:`_rotation_noise`,
+:func:`_one_axis_rms`), stays below ``hinge_tolerance``; else two. ``n_axes``
+overrides this per joint.
+
+Rest pose: the normalisation's default-pose frame ``d`` (``r = p_j(d)``,
+``Q_rest = Q_j(d)``), so every angle is 0 in the default pose.
 
 Angles. One axis ``A``: ``alpha`` is the signed angle from ``r`` to ``p`` about
 ``A`` (both projected on the plane orthogonal to ``A``). Two axes, ``p = R_B(beta)
 R_A(alpha) r``: the circle reachable from ``r`` about ``A`` (plane ``A.x = A.r``) and
 the circle reaching ``p`` about ``B`` (plane ``B.x = B.p``) meet on the line of the two
-planes; its intersections with the sphere are the candidates for the intermediate
-``x``, and the one closer to the previous frame's keeps the trajectory smooth (a
-scan over frames, starting from ``x = r``). Then ``alpha`` takes ``r`` to ``x`` about
-``A`` and ``beta`` takes ``x`` to ``p`` about ``B``. Which extracted axis acts first is
-decided per joint from the data: ``A`` moves with the child and ``B`` stays in the
-parent, so ``B . (Q Q_rest^T A)`` keeps the value ``A . B``; the order in which this
-varies less over the movement frames is kept (for a universal joint the right
-order then needs no twist).
+planes; its two intersections with the sphere give two angle pairs. Walking
+from the rest frame forward and backward in time, the pair of least
+``|wrap(d alpha)|^2 + |wrap(d beta)|^2 + w (alpha^2 + beta^2)`` is kept
+(:func:`_two_axis_angles`): continuity with the previous frame, and near a
+tangency (where the two solutions meet and continuity cannot tell them apart)
+the one nearer the rest pose. Which extracted axis acts first: ``A`` moves with
+the child and ``B`` stays in the parent, so ``B . (Q Q_rest^T A)`` keeps the
+value ``A . B``; when one order keeps this clearly better (combined movement)
+it is used, else (a protocol moves one axis at a time, which keeps both) the
+order that keeps the calibration samples farthest from ``+-B``, where the
+model is singular.
 
 Twist, in closed form (the paper sampled it). With the swing ``S = R_B(beta)
 R_A(alpha)`` and ``d = S r``, the twist ``tau`` minimising ``|R_d(tau) S Q_rest - Q|_F``
@@ -951,8 +963,7 @@ def _with_calibration_trial(
     mask = np.arange(n_cal + n_mot) < n_cal
     norm = normalize_arrays(
         cat[0], skeleton_arrays["edges"], cat[1], root=skeleton_arrays["root"], up_axis=up_axis,
-        segment_translations=cat_t, calibration=mask, marker_offsets=skeleton_arrays.get("marker_offsets"),
-        marker_segment=skeleton_arrays.get("marker_segment"),
+        segment_translations=cat_t, calibration=mask,
     )
     first = np.zeros(n_cal + n_mot, bool)
     first[n_cal] = True
@@ -983,8 +994,7 @@ def parameterize(
     Parameters
     ----------
     skeleton, motion
-        Duck-typed: ``skeleton.edges`` (J, 2), ``skeleton.root`` (optionally
-        ``marker_offsets`` / ``marker_segment``); ``motion.joint_positions``
+        Duck-typed: ``skeleton.edges`` (J, 2), ``skeleton.root``; ``motion.joint_positions``
         (F, J, 3), ``motion.rotations`` (F, S, 4) (w, x, y, z), optionally
         ``motion.segment_translations`` and ``motion.rate``. The motion (or the
         calibration recording) should contain a calibration phase: the default
@@ -1025,12 +1035,7 @@ def parameterize(
             if missing:
                 raise InputError(f"{type(obj).__name__} has no {', '.join(missing)}")
         arrays = (motion.joint_positions, motion.rotations, getattr(motion, "segment_translations", None))
-        skel = {
-            "edges": skeleton.edges,
-            "root": int(skeleton.root),
-            "marker_offsets": getattr(skeleton, "marker_offsets", None),
-            "marker_segment": getattr(skeleton, "marker_segment", None),
-        }
+        skel = {"edges": skeleton.edges, "root": int(skeleton.root)}
         return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
     if normalization is None:
         normalization = normalize(skeleton, motion, up_axis=up_axis, calibration=calibration)
@@ -1051,8 +1056,6 @@ def parameterize_arrays(
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
     segment_translations: Float[Any, "F S 3"] | None = None,
     calibration: Any = None,
-    marker_offsets: Float[Any, "M 3"] | None = None,
-    marker_segment: Int[Any, " M"] | None = None,
     **options: Any,
 ) -> Parameterization:
     """:func:`parameterize` from arrays (normalises first with :func:`~jaxskel.sd06._normalize.normalize_arrays`).
@@ -1062,13 +1065,12 @@ def parameterize_arrays(
     ``segment_translations`` when the motion has them).
     """
     if _is_motion(calibration):
-        skel = {"edges": edges, "root": root, "marker_offsets": marker_offsets, "marker_segment": marker_segment}
+        skel = {"edges": edges, "root": root}
         arrays = (joint_positions, rotations, segment_translations)
         return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
     norm = normalize_arrays(
         joint_positions, edges, rotations, root=root, up_axis=up_axis, segment_translations=segment_translations,
-        calibration=calibration, rate=options.get("rate"), marker_offsets=marker_offsets,
-        marker_segment=marker_segment,
+        calibration=calibration, rate=options.get("rate"),
     )
     return parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=calibration, **options)
 
