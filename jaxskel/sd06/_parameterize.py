@@ -1084,7 +1084,9 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
     ``rest_rotation`` (J, 4) quaternion, ``angles`` (F, J, 3) radians (axis 0, axis 1, twist),
     ``movement`` (F, J) bool, ``speed`` (F, J), ``speed_threshold`` (J,),
     ``residual`` (F, J) radians, ``axis_rms`` (J,), ``exercised`` (J,), ``steps`` (J,),
-    ``converged`` (J,). Attributes: ``method`` and the settings.
+    ``converged`` (J,), ``calibration`` (F, J) bool (the frames each joint's axes
+    came from), ``noise`` (J,) radians. Attributes: ``method``,
+    ``calibration_source`` and the settings.
     """
     from ..io import put as _put
 
@@ -1104,9 +1106,12 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
         "exercised",
         "steps",
         "converged",
+        "calibration",
+        "noise",
     ):
         _put(group, name, np.asarray(getattr(p, name)))
     group.attrs["method"] = p.method
+    group.attrs["calibration_source"] = p.calibration_source
     group.attrs["angle_units"] = "rad"
     for key, value in p.settings.items():
         group.attrs[key] = value if not isinstance(value, list) else np.asarray(value)

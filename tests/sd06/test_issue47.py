@@ -148,6 +148,19 @@ def test_calibration_window_forms_agree(session):
     assert position.mean() < 2e-3  # what the model leaves out: the noise off the hinge axes
 
 
+def test_calibration_frames_are_written(session, tmp_path):
+    import h5py
+
+    from jaxskel.sd06._parameterize import write_parameters
+
+    param = _param(session, calibration=session.protocol)
+    with h5py.File(tmp_path / "r.h5", "w") as f:
+        write_parameters(f.create_group("parameters"), param)
+    with h5py.File(tmp_path / "r.h5", "r") as f:
+        np.testing.assert_array_equal(f["parameters/calibration"][()], param.calibration)
+        assert f["parameters"].attrs["calibration_source"] == "given"
+
+
 def test_bad_calibration_windows_are_reported(session):
     rec = session
     with pytest.raises(InputError, match="at least 3"):
