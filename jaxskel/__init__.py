@@ -33,6 +33,7 @@ _LAZY = {
     "SchemaError": "_errors",
     "ConvergenceWarning": "_errors",
     "UnitsWarning": "_errors",
+    "TrackingWarning": "_errors",
     "DegenerateMotionWarning": "_errors",
     "NonRigidMarkerWarning": "_errors",
     "AmbiguousTreeWarning": "_errors",
@@ -44,6 +45,8 @@ _LAZY = {
     # the pipeline and its result
     "fit_skeleton": "pipeline",
     "fit_batch": "pipeline",
+    "track": "pipeline",
+    "TrackedTrial": "result",
     "FitOptions": "pipeline",
     "CleanOptions": "pipeline",
     "LabelOptions": "pipeline",
@@ -55,6 +58,8 @@ _LAZY = {
     "TrialOutcome": "pipeline",
     "SkeletonResult": "result",
     "load_result": "result",
+    "load_skeleton": "result",
+    "export_osim": "result",
 }
 
 #: The stages, each a namespace of its own: ``jaxskel.segment.segment_markers``, ...

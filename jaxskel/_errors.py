@@ -14,6 +14,7 @@ __all__ = [
     "ConvergenceWarning",
     "UnitsWarning",
     "DegenerateMotionWarning",
+    "TrackingWarning",
 ]
 
 
@@ -43,6 +44,11 @@ class ConvergenceWarning(UserWarning):
 
 class UnitsWarning(UserWarning):
     """A file did not state its units and an assumption was made."""
+
+
+class TrackingWarning(UserWarning):
+    """A trial tracked on a saved skeleton lacks some of its markers, or cannot pose a
+    segment in some frames (:func:`jaxskel.track`); the result says which."""
 
 
 class DegenerateMotionWarning(UserWarning):

@@ -5,6 +5,7 @@
     jaxskel info FILE                         describe a recording or a result file
     jaxskel fit-batch DIR -o OUTDIR [options] fit every recording in a folder (resumable;
                                               --scheduler ADDRESS / --workers N: Dask)
+    jaxskel track SKELETON.h5 TRIAL... -o DIR pose new trials on a saved skeleton
 
 Errors the user can fix (bad file, wrong units, degenerate motion) print one
 clear line and exit with status 2; nothing the user gave is overwritten
@@ -18,17 +19,19 @@ library leaves to its users.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from ._runtime.compile_cache import enable_compile_cache
 from ._runtime.own_process import own_process
 from .pipeline._options import Choice, FitOptions, SettingInfo
+from .pipeline._track import TRACK_GROUPS
 
 __all__ = ["main"]
 
@@ -68,11 +71,15 @@ def _value_type(info: SettingInfo) -> Callable[[str], Any]:
     return parse
 
 
-def add_setting_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per setting of :class:`jaxskel.FitOptions`, with its default and doc."""
+def add_setting_flags(parser: argparse.ArgumentParser, groups: tuple[str, ...] | None = None,
+                      leave_out: tuple[str, ...] = ()) -> None:
+    """One flag per setting of :class:`jaxskel.FitOptions` (of ``groups`` only, when given;
+    none for the flat names in ``leave_out``), with its default and doc."""
     main = parser.add_argument_group("fit settings")
     advanced = parser.add_argument_group("advanced fit settings (jaxskel.FitOptions)")
-    for _group, _field, info, default in FitOptions.settings():
+    for group, _field, info, default in FitOptions.settings():
+        if (groups is not None and group not in groups) or info.flat in leave_out:
+            continue
         where = advanced if info.advanced else main
         flag = _flag(info, default)
         if isinstance(default, bool) and info.cli_values is None:
@@ -113,7 +120,12 @@ def _parser() -> argparse.ArgumentParser:
     def output_options(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
         sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
-        sp.add_argument("--trc", type=Path, default=None, help="export the fitted (gap-filled) markers as TRC")
+        sp.add_argument("--trc", type=Path, default=None,
+                        help="export the fitted (gap-filled) markers as TRC (with --osim: in the model's frame, Y up, "
+                        "and names, ready for OpenSim's inverse kinematics)")
+        sp.add_argument("--osim", type=Path, default=None,
+                        help="export the skeleton as an OpenSim 4 model (.osim): a body per segment, ball joints "
+                        "(pin joints at hinges), the markers; Y up; mass and inertia are placeholders")
         sp.add_argument("--parameterize", action="store_true",
                         help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
         sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -154,6 +166,27 @@ def _parser() -> argparse.ArgumentParser:
     load_options(batch)
     add_setting_flags(batch)
 
+    track = sub.add_parser(
+        "track", help="pose new trials on a saved skeleton (calibrate once, track many)",
+        description="Inverse kinematics of each TRIAL on the skeleton of a result file (jaxskel fit CAL -o "
+        "SKELETON.h5), the trials posed together in batched solves: OUTDIR/<trial>.h5 per trial, with the "
+        "calibration's skeleton unchanged, its motion, joint positions, fitted and gap-filled markers and a "
+        "per-frame residual. Markers are matched by label; missing ones are reported, extra ones ignored.",
+    )
+    track.add_argument("skeleton", type=Path, help="result file holding the calibrated skeleton (.h5)")
+    track.add_argument("trials", nargs="+", type=Path, help=".c3d, .trc, .csv or .h5 recordings of the subject")
+    track.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
+    track.add_argument("--bvh", action="store_true", help="also write OUTDIR/<trial>.bvh, on the calibration's rig")
+    track.add_argument("--trc", action="store_true", help="also write OUTDIR/<trial>.trc, the fitted markers")
+    track.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    track.add_argument("--batch-size", type=int, default=16, help="most trials posed by one solve (default 16)")
+    track.add_argument("--scheduler", default=None, help="Dask scheduler address: track on the cluster's workers")
+    track.add_argument("--workers", type=int, default=None,
+                       help="start a local Dask cluster with this many worker processes")
+    track.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    load_options(track)
+    add_setting_flags(track, groups=TRACK_GROUPS, leave_out=("ik",))
+
     info = sub.add_parser("info", help="describe a recording or a result file")
     info.add_argument("file", type=Path)
     load_options(info)
@@ -161,7 +194,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
-FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc"}
+FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc", "--osim": "osim"}
 
 
 def load_options(parser: argparse.ArgumentParser) -> None:
@@ -302,10 +335,12 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 
     quiet = getattr(args, "quiet", False)
     options = options_from_args(args)
-    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc}, args.overwrite)
+    osim = getattr(args, "osim", None)
+    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc, "--osim": osim},
+                   args.overwrite)
     if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
-        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc))
-                 if on]
+        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc),
+                                       ("--osim", osim)) if on]
         if asked:
             raise jaxskel.InputError(
                 f"{', '.join(asked)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
@@ -317,6 +352,10 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if not quiet:
         for path, trial in zip(inputs, trials):
             _print_load_report(path, trial)
+    if osim is not None and any(t.up_axis == "unknown" for t in trials):
+        raise jaxskel.InputError(
+            "--osim turns the recording's up axis to OpenSim's Y, but it is unknown here: give it with --up-axis"
+        )
     result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
     extra_groups = {}
     if args.parameterize:
@@ -346,8 +385,16 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         if result.motion is None:
             raise jaxskel.InputError("--trc needs the rigid skeleton and IK; drop --no-rigid")
         fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
+        if osim is not None:  # the model's frame and names: the TRC OpenSim's IK reads with the model
+            from .result import opensim_names, to_opensim_frame
+
+            fitted = fitted.replace(positions=to_opensim_frame(fitted.positions, fitted.up_axis),
+                                    labels=opensim_names(fitted.labels), up_axis="y")
         jaxskel.save_trial(fitted, args.trc, overwrite=args.overwrite)
         written.append(args.trc)
+    if osim is not None:
+        result.export_osim(osim, overwrite=args.overwrite)
+        written.append(osim)
     if not quiet:
         print(result.summary())
         print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
@@ -365,27 +412,12 @@ def _fit_batch(args: argparse.Namespace) -> int:
     if args.plot_bones is not None and len(bones) < 2:
         raise jaxskel.InputError("--plot-bones needs two --bone NAME=A,S,B options (x and y)")
     _check_batch_outputs(args)
-    if args.scheduler and args.workers:
-        raise jaxskel.InputError("give --scheduler or --workers, not both")
-    cluster = None
-    scheduler = args.scheduler
-    if args.workers:
-        try:
-            from distributed import LocalCluster
-        except ImportError:
-            raise jaxskel.InputError('--workers needs Dask: pip install "jaxskel[distributed]"') from None
-        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
-        scheduler = cluster.scheduler_address
-    try:
+    with _dask_cluster(args) as scheduler:
         batch = jaxskel.fit_batch(
             args.directory, args.outdir, options=options_from_args(args), bones=bones, batch_size=args.batch_size,
             jobs=args.jobs, scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
             units=args.units, up_axis=args.up_axis,
         )
-    finally:
-        if cluster is not None:
-            cluster.close()
     if args.plot_bones is not None:
         x, y = list(bones)[:2]
         jaxskel.pipeline.plot_bone_lengths(batch, x, y, path=args.plot_bones, overwrite=args.overwrite)
@@ -396,6 +428,55 @@ def _fit_batch(args: argparse.Namespace) -> int:
     for o in batch.failed:
         print(f"jaxskel: {o.name}: {o.error}", file=sys.stderr)
     return 1 if batch.failed else 0
+
+
+def _track(args: argparse.Namespace) -> int:
+    import jaxskel
+
+    if args.batch_size < 1:
+        raise jaxskel.InputError(f"--batch-size must be at least 1, got {args.batch_size}")
+    settings = {k: v for k, v in options_from_args(args).as_flat().items()
+                if k in {info.flat for g, _, info, _ in FitOptions.settings() if g in TRACK_GROUPS}}
+    with _dask_cluster(args) as scheduler:
+        batch = jaxskel.track(
+            args.skeleton, list(args.trials), args.outdir, bvh=args.bvh, trc=args.trc, overwrite=args.overwrite,
+            batch_size=args.batch_size, scheduler=scheduler, progress=not args.quiet, units=args.units,
+            up_axis=args.up_axis, **settings,
+        )
+    if not args.quiet:
+        for o in batch:
+            if o.result is not None:
+                print(o.result.summary())
+        counts = batch.counts()
+        print(f"{len(batch)} trials: {counts.get('ok', 0)} tracked, {counts.get('failed', 0)} failed in "
+              f"{batch.seconds:.1f} s; results in {args.outdir}")
+    for o in batch.failed:
+        print(f"jaxskel: {o.name}: {o.error}", file=sys.stderr)
+    return 1 if batch.failed else 0
+
+
+@contextlib.contextmanager
+def _dask_cluster(args: argparse.Namespace) -> Iterator[Any]:
+    """The Dask scheduler ``--scheduler`` names, or a local cluster of ``--workers`` processes
+    (closed on exit), or None."""
+    import jaxskel
+
+    if args.scheduler and args.workers:
+        raise jaxskel.InputError("give --scheduler or --workers, not both")
+    if args.workers is not None and args.workers < 1:
+        raise jaxskel.InputError(f"--workers must be at least 1, got {args.workers}")
+    if not args.workers:
+        yield args.scheduler
+        return
+    try:
+        from distributed import LocalCluster
+    except ImportError:
+        raise jaxskel.InputError('--workers needs Dask: pip install "jaxskel[distributed]"') from None
+    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
 
 
 def _up(axis: str) -> str:
@@ -509,6 +590,8 @@ def _run(args: argparse.Namespace) -> int:
             return _info(args.file, args)
         if args.command == "fit-batch":
             return _fit_batch(args)
+        if args.command == "track":
+            return _track(args)
     except JaxskelError as exc:
         print(f"jaxskel: error: {exc}", file=sys.stderr)
         return 2

@@ -178,3 +178,51 @@ def true_joint_index(result, trial, truth, j) -> int:
     p, c = result.edges[j]
     key = frozenset((m[int(p)], m[int(c)]))
     return [i for i, e in enumerate(truth.edges) if frozenset(map(int, e)) == key][0]
+
+
+def truth_skeleton(trial, truth, segment_names=()):
+    """The synthetic body's own rigid skeleton (no solver), in ``trial``'s marker order."""
+    from jaxskel.skeleton import Skeleton
+
+    n_seg = len(truth.segment_names)
+    return Skeleton(
+        n_segments=n_seg,
+        edges=truth.edges,
+        root=truth.root,
+        marker_labels=trial.labels,
+        marker_segment=truth.marker_segment,
+        marker_offsets=truth.marker_offsets,
+        joint_offsets=truth.joint_offsets,
+        bones=truth.bones,
+        bone_lengths=truth.bone_lengths,
+        bone_segment=truth.bone_segment,
+        segment_lengths=np.full(n_seg, np.nan),
+        marker_rms=np.zeros(trial.n_markers),
+        nonrigid_markers=(),
+        diagnostics={},
+        segment_names=tuple(segment_names),
+    )
+
+
+def truth_motion(trial, truth):
+    """The synthetic trial's true motion as a :class:`jaxskel.skeleton.Motion` (no solver)."""
+    from scipy.spatial.transform import Rotation
+
+    from jaxskel.skeleton import Motion
+
+    n_seg = len(truth.segment_names)
+    quats = Rotation.from_matrix(truth.segment_rotations.reshape(-1, 3, 3)).as_quat(scalar_first=True)
+    return Motion(
+        root_position=truth.segment_translations[:, truth.root],
+        rotations=quats.reshape(trial.n_frames, n_seg, 4),
+        segment_translations=truth.segment_translations,
+        joint_positions=truth.joint_positions,
+        fitted_markers=truth.clean_positions,
+        marker_rms=np.zeros(trial.n_frames),
+        segment_observed=np.ones((trial.n_frames, n_seg), bool),
+        steps=np.zeros(trial.n_frames, int),
+        result=np.zeros(trial.n_frames, int),
+        converged=True,
+        marker_labels=trial.labels,
+        rate=trial.rate,
+    )

@@ -11,49 +11,16 @@ import dataclasses
 import bvh
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from helpers import truth_motion, truth_skeleton
 
 from jaxskel import InputError, synth
 from jaxskel.result import export_bvh, read_bvh
 from jaxskel.segment import names_from_markers
-from jaxskel.skeleton import Motion, Skeleton
 
 
 def _truth_skeleton_and_motion(body, duration=1.0, seed=0):
     trial, truth = synth.simulate(body, "calibration", duration=duration, seed=seed)
-    n_seg = len(truth.segment_names)
-    skeleton = Skeleton(
-        n_segments=n_seg,
-        edges=truth.edges,
-        root=truth.root,
-        marker_labels=trial.labels,
-        marker_segment=truth.marker_segment,
-        marker_offsets=truth.marker_offsets,
-        joint_offsets=truth.joint_offsets,
-        bones=truth.bones,
-        bone_lengths=truth.bone_lengths,
-        bone_segment=truth.bone_segment,
-        segment_lengths=np.full(n_seg, np.nan),
-        marker_rms=np.zeros(trial.n_markers),
-        nonrigid_markers=(),
-        diagnostics={},
-    )
-    quats = Rotation.from_matrix(truth.segment_rotations.reshape(-1, 3, 3)).as_quat(scalar_first=True)
-    motion = Motion(
-        root_position=truth.segment_translations[:, truth.root],
-        rotations=quats.reshape(trial.n_frames, n_seg, 4),
-        segment_translations=truth.segment_translations,
-        joint_positions=truth.joint_positions,
-        fitted_markers=truth.clean_positions,
-        marker_rms=np.zeros(trial.n_frames),
-        segment_observed=np.ones((trial.n_frames, n_seg), bool),
-        steps=np.zeros(trial.n_frames, int),
-        result=np.zeros(trial.n_frames, int),
-        converged=True,
-        marker_labels=trial.labels,
-        rate=trial.rate,
-    )
-    return skeleton, motion, truth
+    return truth_skeleton(trial, truth), truth_motion(trial, truth), truth
 
 
 @pytest.fixture(scope="module")

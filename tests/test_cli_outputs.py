@@ -56,6 +56,7 @@ def test_fit_refuses_an_output_it_cannot_write_before_any_work(recording, tmp_pa
         f"ending in one of {IMAGE_TYPES} (e.g. {d}/summary.png)",
         ("--bvh", "s.txt"): f"--bvh {d}/s.txt: a BVH file must end in .bvh, not '.txt' (e.g. {d}/s.bvh)",
         ("--trc", "m.csv"): f"--trc {d}/m.csv: a TRC file must end in .trc, not '.csv' (e.g. {d}/m.trc)",
+        ("--osim", "m.xml"): f"--osim {d}/m.xml: an OpenSim model must end in .osim, not '.xml' (e.g. {d}/m.osim)",
         ("--bvh", "walk.trc/s.bvh"): f"--bvh {d}/walk.trc/s.bvh: {d}/walk.trc is a file, not a folder",
     }
     for (flag, name), text in cases.items():

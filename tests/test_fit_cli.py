@@ -267,10 +267,22 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     assert main(["fit", str(src), "-o", str(tmp_path / "joints.h5"), "--trc", str(tmp_path / "m.trc"), "--quiet",
                  "--no-ik"]) == 2
     assert "--no-ik" in capsys.readouterr().err and not (tmp_path / "joints.h5").exists()
-    assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--quiet"]) == 0
+    model, trc = tmp_path / "full.osim", tmp_path / "full.trc"
+    assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--osim", str(model), "--trc",
+                 str(trc), "--quiet"]) == 0
     data = jaxskel.result.read_bvh(bvh)
     assert data.n_frames == trial.n_frames and len(data.names) == 3
     assert data.frame_time == pytest.approx(1.0 / trial.rate)
+    # --osim: the model (bodies and markers as fitted), and the TRC in its frame (Y up) for OpenSim's IK
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(model).getroot()
+    assert len(root.findall("Model/BodySet/objects/Body")) == 3
+    assert [m.get("name") for m in root.findall("Model/MarkerSet/objects/Marker")] == list(trial.labels)
+    fitted = jaxskel.load_result(tmp_path / "full.h5").motion.fitted_markers
+    exported = jaxskel.load(trc)
+    assert exported.up_axis == "y"
+    np.testing.assert_allclose(exported.positions, jaxskel.result.to_opensim_frame(fitted, trial.up_axis), atol=1e-5)
 
 
 def test_cli_warnings_are_one_labelled_message(tmp_path, capsys):

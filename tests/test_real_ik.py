@@ -29,18 +29,27 @@ RECORDINGS = {
 }
 
 
+_FITS: dict[str, jaxskel.SkeletonResult] = {}  # each recording fitted once per test process
+
+
+def _fit(name: str) -> jaxskel.SkeletonResult:
+    if name not in _FITS:
+        rel = RECORDINGS[name]
+        if rel is None:
+            trial = jaxskel.load_sample()
+        else:
+            if not (REAL / rel).is_file():
+                pytest.skip("needs ../shared/data/real")
+            trial = jaxskel.load(REAL / rel)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
+            _FITS[name] = jaxskel.fit_skeleton(trial)
+    return _FITS[name]
+
+
 @pytest.mark.parametrize("name", list(RECORDINGS))
 def test_ik_residuals_on_real_recordings(name, record_property):
-    rel = RECORDINGS[name]
-    if rel is None:
-        trial = jaxskel.load_sample()
-    else:
-        if not (REAL / rel).is_file():
-            pytest.skip("needs ../shared/data/real")
-        trial = jaxskel.load(REAL / rel)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", jaxskel.ConvergenceWarning)
-        result = jaxskel.fit_skeleton(trial)
+    result = _fit(name)
     motion = result.motion
     assert motion is not None and motion.n_frames == result.trial.n_frames
     rms = np.asarray(motion.marker_rms) * 1e3
@@ -55,3 +64,31 @@ def test_ik_residuals_on_real_recordings(name, record_property):
     assert p95 < 40.0, f"95th percentile marker RMS {p95:.1f} mm is over 4 cm"
     # gap filling: frames with missing markers still get every segment posed
     assert np.isfinite(motion.joint_positions).all()
+
+
+def test_a_second_take_tracked_on_the_calibration_skeleton(tmp_path):
+    """Calibrate once, track many, on two labelled takes of one subject (Clouthier et al.):
+    the bundled kneel-to-prone trial calibrates, the prone-to-run trial is tracked on its
+    saved skeleton. Tracking the calibration trial itself gives back the fit's own motion;
+    the new take is posed within OpenSim's rule of thumb, on the same bones to the bit."""
+    if not (REAL / RECORDINGS["PronetoRun01"]).is_file():
+        pytest.skip("needs ../shared/data/real")
+    result = _fit("KneeltoProne01 (bundled)")
+    result.save(tmp_path / "subject.h5")
+    run = jaxskel.load(REAL / RECORDINGS["PronetoRun01"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jaxskel.TrackingWarning)  # a few frames of lost acromion markers
+        batch = jaxskel.track(tmp_path / "subject.h5", [jaxskel.load_sample(), run], tmp_path / "tracked")
+    assert [o.status for o in batch] == ["ok", "ok"], [o.error for o in batch]
+    same, new = (o.result for o in batch)
+    moved = np.linalg.norm(same.motion.joint_positions - result.motion.joint_positions, axis=-1)
+    assert np.nanpercentile(moved, 99) < 1e-4  # the fit's own IK, from the saved skeleton
+    rms = np.asarray(new.motion.marker_rms) * 1e3
+    seen = np.isfinite(rms)
+    assert seen.mean() > 0.95
+    print(f"\nPronetoRun01 tracked on KneeltoProne01: median {np.median(rms[seen]):.2f} / "
+          f"p95 {np.percentile(rms[seen], 95):.2f} mm; unposed {new.unposed_segments()}")
+    assert np.median(rms[seen]) < 20.0 and np.percentile(rms[seen], 95) < 40.0
+    assert new.missing_markers == () and new.segment_posed.mean() > 0.95
+    back = jaxskel.load_skeleton(batch[1].output)
+    assert back.bone_lengths.tobytes() == result.skeleton.bone_lengths.tobytes()

@@ -24,6 +24,7 @@ OUTPUT_KINDS: dict[str, tuple[str, tuple[str, ...] | None, str]] = {
     "trial": ("a recording", (".h5", ".hdf5", ".c3d", ".trc"), "trial.h5"),
     "bvh": ("a BVH file", (".bvh",), "skeleton.bvh"),
     "trc": ("a TRC file", (".trc",), "fitted_markers.trc"),
+    "osim": ("an OpenSim model", (".osim",), "skeleton.osim"),
     "image": ("a figure", None, "summary.png"),
     "table": ("a table", (".csv",), "summary.csv"),
 }

@@ -11,6 +11,7 @@ from ._options import (
     CleanOptions, FitOptions, JointOptions, LabelOptions, MotionOptions, SegmentOptions, SettingInfo, SkeletonOptions,
 )
 from ._plan import PreparedFit, StagePlan
+from ._track import track
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
@@ -19,5 +20,5 @@ from ._batch_io import parse_bone_spec
 __all__ = [
     "BatchResult", "CleanOptions", "FitOptions", "JointOptions", "LabelOptions", "MotionOptions", "PreparedFit",
     "SegmentOptions", "SettingInfo", "SkeletonOptions", "StagePlan", "TrialOutcome", "bone_length", "fit_batch",
-    "fit_skeleton", "plot_bone_lengths",
+    "fit_skeleton", "plot_bone_lengths", "track",
 ]

@@ -405,6 +405,7 @@ class StagePlan:
             work, segmentation.marker_segment, topology.edges, centres, root=topology.root,
             sliding_joints=sliding, joint_weight=SOLVED_JOINT_WEIGHT, landmarks=landmarks,
         )
+        skeleton = dataclasses.replace(skeleton, segment_names=tuple(names))
         if anchored is not None:
             report = {k: v for k, v in vars(anchored).items() if k != "joint_positions"}
             skeleton = dataclasses.replace(skeleton, diagnostics={**skeleton.diagnostics, "anchored": report})

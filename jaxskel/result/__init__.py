@@ -1,12 +1,15 @@
-"""The result of a fit: SkeletonResult, its summary, its HDF5 file format and its BVH
-export.
+"""The result of a fit: SkeletonResult, its summary, its HDF5 file format, its BVH
+export and its OpenSim model export.
 """
 
 from __future__ import annotations
 
 from ._bvh import BvhData, export_bvh, read_bvh
 from ._format import ResultFile, SCHEMA_VERSION, load_result
+from ._osim import export_osim, opensim_frame, opensim_names, to_opensim_frame
 from ._result import SkeletonResult
+from ._skeleton_file import load_skeleton
+from ._tracked import TrackedTrial
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
@@ -16,6 +19,6 @@ from ._summary import (
 )
 
 __all__ = [
-    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "export_bvh", "load_result",
-    "read_bvh",
+    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "TrackedTrial", "export_bvh", "export_osim",
+    "load_result", "load_skeleton", "opensim_frame", "opensim_names", "read_bvh", "to_opensim_frame",
 ]

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from .._errors import InputError
 from ..io import atomic_output, check_output
-from ..segment import names_from_markers, safe_name
+from ..segment import safe_name
 
 if TYPE_CHECKING:
     from ..skeleton import Motion, Skeleton
@@ -93,8 +93,8 @@ def export_bvh(
     units
         ``"m"`` or ``"cm"`` for offsets and root positions.
     labels
-        Segment names (default: readable names from the skeleton's marker labels,
-        :func:`jaxskel.segment._names.names_from_markers`); whitespace becomes ``_``.
+        Segment names (default: :meth:`Skeleton.names`, the skeleton's segment names or
+        readable names from its marker labels); whitespace becomes ``_``.
     rotation_order
         Order of the three rotation channels, a permutation of ``"XYZ"``.
 
@@ -115,7 +115,7 @@ def export_bvh(
     if motion.rotations.shape[1] != n_seg:
         raise InputError(f"motion has {motion.rotations.shape[1]} segments, the skeleton {n_seg}")
     if labels is None:
-        labels = names_from_markers(skeleton.marker_labels, skeleton.marker_segment, n_seg)
+        labels = skeleton.names()
     names = [safe_name(v) for v in labels]
     if len(names) != n_seg or len(set(names)) != n_seg:
         raise InputError(f"labels must be {n_seg} distinct segment names")

@@ -30,8 +30,9 @@ Schema version 1 (documented in the README, "Result file"):
 * ``/joints``: ``positions`` (F, J, 3) (NaN undefined), ``cost`` (J,),
   ``uncertainty`` (J,), ``alpha`` (J,), ``radii`` (J, Kmax) NaN padded, ``resolution`` (J,)
   and ``undetermined`` (u,) joint indices (:mod:`jaxskel.joints._determination`);
-* ``/skeleton`` (``bone_uncertainty`` (B,) beside ``bone_lengths``) and ``/motion`` (when
-  fitted, see the README);
+* ``/skeleton`` (every field of the rigid skeleton, read back exactly by
+  :func:`jaxskel.load_skeleton`, :mod:`jaxskel.result._skeleton_file`; ``bone_uncertainty`` (B,)
+  beside ``bone_lengths``) and ``/motion`` (when fitted, see docs/result-format.md);
 * ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
   ``timings`` as attributes, the cleaning report (``cleaning/duplicates`` and
   ``duplicate_of``: labels merged as copies of another), settings.
@@ -54,22 +55,15 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ..io import atomic_output, check_output, input_sources, put, refuse_input
+from ._skeleton_file import write_skeleton
 
-__all__ = ["SCHEMA_VERSION", "save_result", "load_result", "ResultFile"]
+__all__ = ["SCHEMA_VERSION", "ResultFile", "jsonable", "load_result", "save_result", "write_cleaning", "write_motion"]
 
 SCHEMA_VERSION = 1
-def _write_skeleton(g: h5py.Group, skeleton: Any) -> None:
-    for name in ("marker_offsets", "joint_offsets", "bones", "bone_lengths", "marker_rms"):
-        if getattr(skeleton, name, None) is not None:
-            put(g, name, np.asarray(getattr(skeleton, name)))
-    from ..joints import bone_uncertainty
-
-    put(g, "bone_uncertainty", bone_uncertainty(skeleton))
-    if getattr(skeleton, "nonrigid_markers", None) is not None:
-        put(g, "nonrigid_markers", np.asarray(skeleton.nonrigid_markers))
 
 
-def _write_motion(g: h5py.Group, motion: Any) -> None:
+def write_motion(g: h5py.Group, motion: Any) -> None:
+    """Fill ``g`` (``/motion``) with a :class:`jaxskel.skeleton.Motion`'s arrays."""
     for src, dst in (
         ("root_position", "root_position"),
         ("rotations", "rotations"),
@@ -77,12 +71,27 @@ def _write_motion(g: h5py.Group, motion: Any) -> None:
         ("joint_positions", "joint_positions"),
         ("fitted_markers", "fitted_markers"),
         ("marker_rms", "marker_rms"),
+        ("segment_observed", "segment_observed"),
         ("steps", "steps"),
         ("result", "result"),
         ("lowpass_hz", "lowpass_hz"),
     ):
         if getattr(motion, src, None) is not None:
             put(g, dst, np.asarray(getattr(motion, src)))
+
+
+def write_cleaning(c: h5py.Group, rep: Any) -> None:
+    """Fill ``c`` (``/diagnostics/cleaning``) with a :class:`jaxskel.clean.CleaningReport`."""
+    put(c, "labels", list(rep.labels))
+    put(c, "present_before", rep.present_before)
+    put(c, "present_after", rep.present_after)
+    put(c, "jump_samples", rep.jump_samples)
+    put(c, "trimmed_samples", rep.trimmed_samples)
+    put(c, "longest_run_s", rep.longest_run_s)
+    put(c, "dropped", list(rep.dropped))
+    put(c, "dropped_reason", list(rep.dropped.values()))
+    put(c, "duplicates", np.asarray(list(rep.duplicates), dtype=str))
+    put(c, "duplicate_of", np.asarray(list(rep.duplicates.values()), dtype=str))
 
 
 def save_result(
@@ -185,9 +194,9 @@ def save_result(
             put(g, "undetermined", np.asarray([u.joint for u in result.undetermined_joints()], dtype=int))
 
             if result.skeleton is not None:
-                _write_skeleton(f.create_group("skeleton"), result.skeleton)
+                write_skeleton(f.create_group("skeleton"), result.skeleton, result.segment_names)
             if result.motion is not None:
-                _write_motion(f.create_group("motion"), result.motion)
+                write_motion(f.create_group("motion"), result.motion)
 
             d = f.create_group("diagnostics")
             pc = topo.pair_costs
@@ -200,33 +209,23 @@ def save_result(
             put(d, "segmentation_scores", seg.scores)
             put(d, "trial_bounds", np.asarray(result.trial_bounds, dtype=int).reshape(-1, 2))
             if result.skeleton is not None and getattr(result.skeleton, "diagnostics", None):
-                d.attrs["rigid"] = json.dumps(_jsonable(result.skeleton.diagnostics))
+                d.attrs["rigid"] = json.dumps(jsonable(result.skeleton.diagnostics))
             for stage, seconds in result.timings.items():
                 d.attrs[f"time_{stage.replace(' ', '_')}"] = float(seconds)
-            d.attrs["settings"] = json.dumps(_jsonable(result.settings))
+            d.attrs["settings"] = json.dumps(jsonable(result.settings))
             if result.cleaning is not None:
-                c = d.create_group("cleaning")
-                rep = result.cleaning
-                put(c, "labels", list(rep.labels))
-                put(c, "present_before", rep.present_before)
-                put(c, "present_after", rep.present_after)
-                put(c, "jump_samples", rep.jump_samples)
-                put(c, "trimmed_samples", rep.trimmed_samples)
-                put(c, "longest_run_s", rep.longest_run_s)
-                put(c, "dropped", list(rep.dropped))
-                put(c, "dropped_reason", list(rep.dropped.values()))
-                put(c, "duplicates", np.asarray(list(rep.duplicates), dtype=str))
-                put(c, "duplicate_of", np.asarray(list(rep.duplicates.values()), dtype=str))
+                write_cleaning(d.create_group("cleaning"), result.cleaning)
             for name, writer in (extra_groups or {}).items():
                 writer(f.create_group(name))
     return path
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON values (mappings, lists, numbers, strings; anything else as text)."""
     if isinstance(obj, Mapping):  # dicts and the read-only views results hold
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, (np.generic,)):

@@ -250,3 +250,18 @@ class SkeletonResult:
             self.skeleton, motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
             labels=self.segment_names, rotation_order=rotation_order,
         )
+
+    def export_osim(self, path: str, *, overwrite: bool = False, frame: int | None = None) -> Path:
+        """Write the rigid skeleton as an OpenSim 4 model (:func:`jaxskel.result.export_osim`):
+        bodies named by :attr:`segment_names`, markers by their labels, the recording's up axis
+        turned to OpenSim's Y, and the default pose the motion's ``frame`` (default: the rest
+        frame of the rigid fit). Returns the path written."""
+        if self.skeleton is None:
+            raise InputError("export_osim needs the rigid skeleton; fit with rigid=True (the default)")
+        from ..result._osim import export_osim
+
+        motion = self.motion
+        if motion is not None and frame is None:
+            frame = int(self.skeleton.diagnostics.get("rest_frame", 0))
+        return export_osim(self.skeleton, path, motion=motion, frame=0 if frame is None else frame, up_axis=self.trial.up_axis,
+                           segment_names=self.segment_names, overwrite=overwrite)

@@ -160,6 +160,9 @@ class Skeleton:
         (per joint: that axis in the parent frame, NaN for joints not moved); when the
         refined poses showed a moved joint turning about more than one axis, the fit is
         redone without moving it and ``hinges_unmoved`` lists those joints.
+    segment_names
+        (S,) names of the segments (display and export only; ``()`` when not named:
+        :meth:`names` derives them from the markers' labels).
     """
 
     n_segments: int
@@ -176,6 +179,7 @@ class Skeleton:
     marker_rms: np.ndarray
     nonrigid_markers: tuple[str, ...]
     diagnostics: Mapping[str, Any]
+    segment_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in (
@@ -186,6 +190,12 @@ class Skeleton:
             a.setflags(write=False)
             object.__setattr__(self, name, a)
         object.__setattr__(self, "diagnostics", types.MappingProxyType(dict(self.diagnostics)))
+        object.__setattr__(self, "marker_labels", tuple(str(v) for v in self.marker_labels))
+        object.__setattr__(self, "nonrigid_markers", tuple(str(v) for v in self.nonrigid_markers))
+        names = tuple(str(v) for v in self.segment_names)
+        if names and len(names) != self.n_segments:
+            raise InputError(f"segment_names has {len(names)} names for {self.n_segments} segments")
+        object.__setattr__(self, "segment_names", names)
 
     @property
     def n_joints(self) -> int:
@@ -194,6 +204,15 @@ class Skeleton:
     @property
     def n_markers(self) -> int:
         return len(self.marker_labels)
+
+    def names(self) -> tuple[str, ...]:
+        """(S,) segment names: :attr:`segment_names`, else readable names from the markers'
+        labels (:func:`jaxskel.segment.names_from_markers`)."""
+        if self.segment_names:
+            return self.segment_names
+        from ..segment import names_from_markers
+
+        return tuple(names_from_markers(self.marker_labels, self.marker_segment, self.n_segments))
 
     @property
     def parent(self) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 A small synthetic fit goes through the public API (``jaxskel.synth``, ``jaxskel.fit_skeleton``,
 ``SkeletonResult.save``, ``jaxskel.save_trial``, the ``jaxskel fit --parameterize`` command and
-``jaxskel.fit_batch``); the test walks every file written and asserts that each name is in
+``jaxskel.fit_batch``, ``jaxskel.track``); the test walks every file written and asserts that each name is in
 ``docs/result-format.md``. A new dataset or attribute that is not documented fails here.
 
 Naming in the document: a group or dataset by its full path (```/topology/edges```), an
@@ -85,19 +85,23 @@ def written(tmp_path_factory) -> dict[str, Path]:
 
     batch = jaxskel.fit_batch([trial_file], tmp / "batch")
     assert not batch.failed, batch.failed
+
+    tracked = jaxskel.track(tmp / "fit.h5", trial_file, tmp / "tracked")
+    assert not tracked.failed, tracked.failed
     return {
         "trial": trial_file,
         "fit": tmp / "fit.h5",
         "parameterized": tmp / "parameterized.h5",
         "batch": tmp / "batch" / "trial.h5",
         "summary": tmp / "batch" / "summary.csv",
+        "tracked": tmp / "tracked" / "trial.h5",
     }
 
 
 def test_result_files_are_documented(written):
     sections = _sections(DOC.read_text(encoding="utf-8"))
     text = "\n".join(body for title, body in sections.items() if not title.startswith("Trial file"))
-    for kind in ("fit", "parameterized", "batch"):
+    for kind in ("fit", "parameterized", "batch", "tracked"):
         objects = _objects(written[kind])
         assert "/@schema_version" in objects
         missing = _undocumented(objects, text)
@@ -105,6 +109,7 @@ def test_result_files_are_documented(written):
     groups = {o.split("/")[1].split("@")[0] for o in _objects(written["parameterized"])}
     assert {"normalized", "parameters", "skeleton", "motion"} <= groups
     assert "/batch@signature" in _objects(written["batch"])
+    assert "/motion/segment_posed" in _objects(written["tracked"])
 
 
 def test_trial_file_is_documented(written):
