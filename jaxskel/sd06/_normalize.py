@@ -33,15 +33,32 @@ is the paper's least-cost frame.
 
 Body planes at frame ``d``: the frontal normal is ``e_3``; the transverse normal
 is the up axis made orthogonal to it; the sagittal normal completes the frame.
-The front/back sign is not visible in a planar pose, so it is a convention: the
-subject's left (+y) is the side of the first joint (in joint order) that lies
-clearly off the midline (more than a quarter of the widest lateral offset), or
-the frontal normal points along ``facing`` when that world direction is given.
+The front/back sign is not visible in a planar pose, and with it left and right
+(``y = z x x``): it comes from the body, never from the order of the joints.
+With ``n`` the unsigned frontal normal, ``n_f`` the same normal carried by the
+root through frame f, and "low" meaning below a quarter of the joints' height
+range at frame d, the first conclusive cue of
+
+1. ``facing``, a world direction given by the caller: ``sign(n . facing)``;
+2. feet: the leaves with their own long axis (heel -> toe, ``leaf_axes``) whose
+   proximal joint is low point forward: ``sum n . a_leaf`` (conclusive when
+   above 0.3 per foot);
+3. knees: for every low chain of joints (proximal, middle, distal; e.g. hip,
+   knee, ankle) the middle joint's mean offset from the line of the two others
+   along ``n_f``, over the recording: knees bend forward (conclusive when above
+   0.02 body scales per chain);
+4. walking: the distance the root travels along ``n_f`` (conclusive above 2
+   body scales)
+
+decides; without one the sign makes the largest world component of ``n``
+positive (a convention, with a DegenerateMotionWarning).
 
 Limb frames at frame ``d``: the root (hierarchical root segment) gets the body
 frame. Every other segment's main orientation ``m`` runs from its proximal joint
-to the centroid of its distal joints; a leaf (no distal joint) points from its
-parent limb's origin to its proximal joint. The body normal most parallel to
+to the centroid of its distal joints; a leaf (no distal joint) takes its own
+long axis when its markers give one (``leaf_axes``: a foot's heel -> toe, a
+hand's wrist -> marker centroid; :func:`leaf_axes_from_markers`), else the
+direction from its parent limb's origin to its proximal joint. The body normal most parallel to
 ``m`` is replaced by ``+-m`` (sign kept, so the limb frame stays close to the body
 frame); of the two others, the one closer to the plane orthogonal to ``m`` is
 projected into that plane and the third axis completes a right-handed frame.
@@ -57,6 +74,7 @@ from __future__ import annotations
 
 import dataclasses
 import types
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -65,7 +83,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._errors import DegenerateMotionError, InputError
+from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
 from .._math.padding import bucket_size
 from .._math.rotation import (
     matrix_to_quat,
@@ -119,6 +137,10 @@ class TreeArrays:
         non-root segments (leaves and the root have zero rows).
     order
         (J,) joints in topological order (a parent's joint before its children's).
+    chain_proximal, chain_distal, chain
+        Per joint j as the middle of a chain of three joints: (J,) the proximal
+        joint of j's parent segment (-1 at the root), (J, J) weights of the
+        centroid of the child segment's distal joints, and (J,) whether both exist.
     """
 
     proximal: np.ndarray
@@ -126,6 +148,9 @@ class TreeArrays:
     origin_weights: np.ndarray
     main_weights: np.ndarray
     order: np.ndarray
+    chain_proximal: np.ndarray
+    chain_distal: np.ndarray
+    chain: np.ndarray
 
 
 def tree_arrays(edges: Any, root: int) -> TreeArrays:
@@ -165,7 +190,59 @@ def tree_arrays(edges: Any, root: int) -> TreeArrays:
     origin[root] = distal_mean[root]
     main = np.where(leaf[:, None], 0.0, distal_mean - prox)
     main[root] = 0.0
-    return TreeArrays(proximal, leaf, origin, main, np.asarray(order, dtype=int))
+    chain_proximal = proximal[edges[:, 0]]
+    chain_distal = distal_mean[edges[:, 1]]
+    chain = (chain_proximal >= 0) & ~leaf[edges[:, 1]]
+    return TreeArrays(
+        proximal, leaf, origin, main, np.asarray(order, dtype=int), chain_proximal, chain_distal, chain
+    )
+
+
+def leaf_axes_from_markers(
+    edges: Any, root: int, marker_segment: Any, marker_offsets: Any, joint_offsets: Any = None
+) -> np.ndarray:
+    """Each leaf segment's own long axis from its markers, in segment coordinates (S, 3).
+
+    For a leaf (no distal joint) with markers at ``P_i`` (segment coordinates)
+    and proximal joint ``j`` (``joint_offsets[., 1]``, the joint in the child
+    frame; zero when not given), with ``c`` the mean of ``P_i - j`` and
+    ``l_1 >= l_2`` the two largest eigenvalues (eigenvector ``e_1``) of their
+    covariance: when the markers are elongated (``l_1 >= 4 l_2``) and longer
+    along ``e_1`` than their distance from the joint (``ptp((P - j) e_1) >
+    |c|``), as heel, metatarsal and toe markers on a foot are, the axis runs
+    from the marker least to the one most advanced along ``e_1``, signed away
+    from the joint (``c . e_1 > 0``: heel -> toe); otherwise
+    (hand, head) it is the direction ``c`` from the joint to the markers. Rows
+    of non-leaf segments and of leaves without markers are zero (the
+    normalisation then uses the parent limb's direction).
+    """
+    edges = np.asarray(edges)
+    tree = tree_arrays(edges, root)
+    seg = np.asarray(marker_segment).reshape(-1)
+    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
+    if seg.shape[0] != off.shape[0]:
+        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
+    jo = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
+    out = np.zeros((tree.leaf.size, 3))
+    for s in np.flatnonzero(tree.leaf):
+        pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
+        if pts.shape[0] == 0:
+            continue
+        joint = np.zeros(3) if jo is None else jo[tree.proximal[s], 1]
+        rel = pts - joint
+        c = rel.mean(0)
+        axis = c
+        if pts.shape[0] >= 2:
+            vals, vecs = np.linalg.eigh(np.cov(rel.T, bias=True))
+            e1 = vecs[:, 2]
+            along = rel @ e1
+            if vals[2] >= 4.0 * vals[1] and np.ptp(along) > np.linalg.norm(c) and abs(c @ e1) > 1e-9:
+                # From the rearmost to the foremost marker along e_1 (heel -> toe).
+                axis = (rel[np.argmax(along)] - rel[np.argmin(along)]) * np.sign(c @ e1)
+        n = np.linalg.norm(axis)
+        if n > 1e-9:
+            out[s] = axis / n
+    return out
 
 
 def up_vector(up_axis: Any) -> np.ndarray:
@@ -290,6 +367,63 @@ def _limb_frame(m: Float[Array, " 3"], body: Float[Array, "3 3"]) -> tuple[Float
     return frame, k, sign
 
 
+#: Names of the front/back cues, in the order they are tried (``Normalization.handedness``).
+HANDEDNESS_CUES = ("facing", "feet", "knees", "walking", "none")
+
+
+def _front_evidence(
+    joints: Float[Array, "F J 3"],
+    quats: Float[Array, "F S 4"],
+    origins: Float[Array, "F S 3"],
+    valid: Bool[Array, " F"],
+    d: Int[Array, ""],
+    root: Int[Array, ""],
+    frontal: Float[Array, " 3"],
+    up: Float[Array, " 3"],
+    scale: Float[Array, ""],
+    proximal: Int[Array, " S"],
+    own_leaf: Bool[Array, " S"],
+    leaf_d: Float[Array, "S 3"],
+    chain_proximal: Int[Array, " J"],
+    chain_distal: Float[Array, "J J"],
+    chain: Bool[Array, " J"],
+) -> tuple[Float[Array, " 3"], Bool[Array, " 3"]]:
+    """Signed evidence that ``frontal`` points anterior, and whether it is conclusive, per body cue.
+
+    Cues (see the module docstring): feet, knees, walking; each is a signed
+    number along ``frontal`` (positive: anterior) and a flag.
+    """
+    heights = joints[d] @ up
+    low = jnp.min(heights) + 0.25 * (jnp.max(heights) - jnp.min(heights))
+    # Feet: leaves with their own long axis whose proximal joint is among the lowest.
+    feet = own_leaf & (heights[jnp.maximum(proximal, 0)] < low) & (proximal >= 0)
+    n_feet = jnp.sum(feet)
+    feet_score = jnp.sum(jnp.where(feet, leaf_d @ frontal, 0.0))
+    feet_ok = (n_feet > 0) & (jnp.abs(feet_score) > 0.3 * n_feet)
+    # Knees: in the lower chains (proximal -> middle -> distal joints), the middle
+    # joint's offset from the line of the two others, along the frontal normal as
+    # the root carries it through the recording (knees bend forward).
+    w = valid.astype(joints.dtype) / jnp.maximum(jnp.sum(valid), 1)
+    carry = quat_multiply(quats[:, root], quat_conjugate(quats[d, root]))
+    normal_f = quat_rotate(carry, frontal[None])  # (F, 3)
+    x_prox = joints[:, jnp.maximum(chain_proximal, 0)]
+    x_dist = jnp.einsum("jk,fkc->fjc", chain_distal, joints)
+    u = x_dist - x_prox
+    rel = joints - x_prox
+    t = jnp.sum(rel * u, -1, keepdims=True) / jnp.maximum(jnp.sum(u * u, -1, keepdims=True), 1e-12)
+    bulge = jnp.sum((rel - t * u) * normal_f[:, None], -1)  # (F, J)
+    lower = chain & (x_dist[d] @ up < low)
+    n_knees = jnp.sum(lower)
+    knee_score = jnp.sum(jnp.where(lower, w @ bulge, 0.0)) / scale
+    knee_ok = (n_knees > 0) & (jnp.abs(knee_score) > 0.02 * n_knees)
+    # Walking: distance the root travels along its frontal normal, in body scales.
+    step = origins[1:, root] - origins[:-1, root]
+    pair = valid[1:] & valid[:-1]
+    walk_score = jnp.sum(jnp.where(pair, jnp.sum(step * normal_f[1:], -1), 0.0)) / scale
+    walk_ok = jnp.abs(walk_score) > 2.0
+    return jnp.stack([feet_score, knee_score, walk_score]), jnp.stack([feet_ok, knee_ok, walk_ok])
+
+
 @jax.jit
 def _normalize_core(
     joints: Float[Array, "F J 3"],
@@ -309,6 +443,11 @@ def _normalize_core(
     weights: Float[Array, " 3"],
     candidate_tolerance: Float[Array, ""],
     search: Bool[Array, " F"],
+    leaf_axes: Float[Array, "S 3"],
+    has_leaf_axis: Bool[Array, " S"],
+    chain_proximal: Int[Array, " J"],
+    chain_distal: Float[Array, "J J"],
+    chain: Bool[Array, " J"],
 ) -> dict[str, Array]:
     """Default-pose frame, body frame, limb frames and constant offsets (module docstring)."""
     terms, vecs = jax.vmap(default_pose_terms)(joints)
@@ -343,21 +482,29 @@ def _normalize_core(
 
     # Body planes at the default frame.
     x_d = joints[d]
-    centroid = jnp.mean(x_d, axis=0)
     frontal = vecs[d][:, 0]
     up_in_plane = up - (up @ frontal) * frontal
     transverse = _unit(up_in_plane)
     lateral0 = jnp.cross(transverse, frontal)
-    offsets = (x_d - centroid) @ lateral0
-    first_lateral = jnp.argmax(jnp.abs(offsets) > 0.25 * jnp.max(jnp.abs(offsets)))
-    by_side = jnp.where(offsets[first_lateral] < 0, -1.0, 1.0)
-    by_facing = jnp.where(frontal @ facing < 0, -1.0, 1.0)
-    sign = jnp.where(jnp.any(facing != 0), by_facing, by_side).astype(joints.dtype)
+    leaf_d = quat_rotate(quats[d], leaf_axes)  # each leaf's own long axis at the default frame
+    evidence, found = _front_evidence(
+        joints, quats, origins, valid, d, root, frontal, up, scale, proximal, leaf & has_leaf_axis, leaf_d,
+        chain_proximal, chain_distal, chain,
+    )
+    evidence = jnp.concatenate([jnp.stack([frontal @ facing]), evidence])
+    found = jnp.concatenate([jnp.stack([jnp.any(facing != 0)]), found])
+    cue = jnp.where(jnp.any(found), jnp.argmax(found), found.shape[0])
+    # No cue: an arbitrary but order-independent convention (reported, see normalize_arrays).
+    fallback = frontal[jnp.argmax(jnp.abs(frontal))]
+    chosen = jnp.where(jnp.any(found), evidence[jnp.minimum(cue, found.shape[0] - 1)], fallback)
+    sign = jnp.where(chosen < 0, -1.0, 1.0).astype(joints.dtype)
     body = jnp.stack([sign * frontal, sign * lateral0, transverse], axis=1)
 
     # Limb frames at the default frame.
     proximal_d = x_d[jnp.maximum(proximal, 0)]
-    main_d = jnp.where(leaf[:, None], proximal_d - origins[d][jnp.maximum(parent, 0)], main_weights @ x_d)
+    shank_like = proximal_d - origins[d][jnp.maximum(parent, 0)]
+    leaf_main = jnp.where(has_leaf_axis[:, None], leaf_d, shank_like)
+    main_d = jnp.where(leaf[:, None], leaf_main, main_weights @ x_d)
     frames_d, main_axis, main_sign = jax.vmap(_limb_frame, in_axes=(0, None))(main_d, body)
     is_root = jnp.arange(frames_d.shape[0]) == root
     frames_d = jnp.where(is_root[:, None, None], body, frames_d)
@@ -383,6 +530,8 @@ def _normalize_core(
         "scale": scale,
         "default_frame": d,
         "body_frame": body,
+        "handedness": cue,
+        "front_evidence": evidence,
         "up_in_plane": jnp.linalg.norm(up_in_plane),
         "main_length": jnp.linalg.norm(main_d, axis=-1),
         "main_axis": main_axis,
@@ -458,6 +607,15 @@ class Normalization:
     calibration
         (F,) the frames the default pose was searched in (all, unless a
         calibration window was given).
+    handedness
+        The body cue that fixed front/back and so left/right (:data:`HANDEDNESS_CUES`):
+        "facing" (given), "feet", "knees", "walking" or "none" (a convention).
+    front_evidence
+        (4,) each cue's signed evidence that the body frame's unsigned frontal
+        normal points anterior: facing cosine, feet (sum of cosines), knees
+        (summed mean bulge in body scales), walking (distance in body scales).
+    leaf_axes
+        (S, 3) the leaves' own long axes in segment coordinates (zero rows: none).
     """
 
     edges: np.ndarray
@@ -480,6 +638,9 @@ class Normalization:
     joint_offsets: np.ndarray
     origins_local: np.ndarray | None = None
     calibration: np.ndarray | None = None
+    handedness: str = "none"
+    front_evidence: np.ndarray | None = None
+    leaf_axes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -540,6 +701,7 @@ def normalize_arrays(
     candidate_tolerance: float = 0.02,
     calibration: Any = None,
     rate: float | None = None,
+    leaf_axes: Float[Any, "S 3"] | None = None,
 ) -> Normalization:
     """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
 
@@ -573,6 +735,16 @@ def normalize_arrays(
         or a boolean mask (F,). Limb frames are still given for every frame.
     rate
         Frames per second (only needed for a calibration window in seconds).
+    leaf_axes
+        Optional (S, 3): each leaf segment's own long axis in its segment
+        coordinates (e.g. heel -> toe, :func:`leaf_axes_from_markers`); zero rows
+        (and every leaf when None) take the direction of the parent limb.
+
+    Warns
+    -----
+    DegenerateMotionWarning
+        When no body cue tells front from back (module docstring): the sign is
+        then a convention (``handedness`` "none"); pass ``facing``.
     """
     x = np.asarray(joint_positions)
     q = np.asarray(rotations)
@@ -623,6 +795,15 @@ def normalize_arrays(
 
     parent = np.full(n_joints + 1, -1)
     parent[edges_np[:, 1]] = edges_np[:, 0]
+    if leaf_axes is None:
+        own = np.zeros((n_joints + 1, 3))
+    else:
+        own = np.asarray(leaf_axes, dtype=float)
+        if own.shape != (n_joints + 1, 3) or not np.all(np.isfinite(own)):
+            raise InputError(f"leaf_axes must be finite, shape ({n_joints + 1}, 3) (one row per segment), got {own.shape}")
+    own_norm = np.linalg.norm(own, axis=1)
+    has_own = (own_norm > 1e-9) & tree.leaf
+    own = np.where(has_own[:, None], own / np.maximum(own_norm, 1e-12)[:, None], 0.0)
     out = _normalize_core(
         jnp.asarray(pad(x)),
         jnp.asarray(pad(q)),
@@ -641,9 +822,23 @@ def normalize_arrays(
         jnp.asarray([w["plane"], w["ratio"], w["spread"]], dtype),
         jnp.asarray(candidate_tolerance, dtype),
         jnp.asarray(np.concatenate([search, np.zeros(size - n_frames, bool)])),
+        jnp.asarray(own, dtype),
+        jnp.asarray(has_own),
+        jnp.asarray(tree.chain_proximal),
+        jnp.asarray(tree.chain_distal, dtype),
+        jnp.asarray(tree.chain),
     )
     out = {k: np.asarray(v) for k, v in out.items()}
     d = int(out["default_frame"])
+    handedness = HANDEDNESS_CUES[int(out["handedness"])]
+    if handedness == "none":
+        warnings.warn(
+            "front and back (and so left and right) could not be told from the body: no foot points "
+            "forward, no knee bends and the subject does not walk; the body frame's front is a "
+            "convention. Pass facing= (the direction the subject faces) to fix it.",
+            DegenerateMotionWarning,
+            stacklevel=3,
+        )
     if out["up_in_plane"] < 0.1:
         raise DegenerateMotionError(
             f"in the default-pose frame {d} the best-fit body plane is (nearly) horizontal, so the "
@@ -677,6 +872,9 @@ def normalize_arrays(
         joint_offsets=out["joint_offsets"],
         origins_local=None if segment_translations is None else out["origins_local"],
         calibration=search,
+        handedness=handedness,
+        front_evidence=out["front_evidence"],
+        leaf_axes=own,
     )
 
 
@@ -693,7 +891,9 @@ def normalize(
 ) -> Normalization:
     """Skeleton-aligned limb frames for a fitted motion (Sar Dessai et al. 2006, §3).
 
-    ``skeleton`` needs ``.edges`` (J, 2) and ``.root``; ``motion`` needs
+    ``skeleton`` needs ``.edges`` (J, 2) and ``.root`` (with ``.marker_segment``
+    and ``.marker_offsets`` the leaves get their own long axes,
+    :func:`leaf_axes_from_markers`); ``motion`` needs
     ``.joint_positions`` (F, J, 3), ``.rotations`` (F, S, 4) and, optionally,
     ``.segment_translations`` (F, S, 3). ``up_axis`` is the recording's vertical
     (``Trial.up_axis``); see :func:`normalize_arrays` for the other options
@@ -723,6 +923,18 @@ def normalize(
         candidate_tolerance=candidate_tolerance,
         calibration=calibration,
         rate=getattr(motion, "rate", None),
+        leaf_axes=skeleton_leaf_axes(skeleton),
+    )
+
+
+def skeleton_leaf_axes(skeleton: Any) -> np.ndarray | None:
+    """:func:`leaf_axes_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
+    seg = getattr(skeleton, "marker_segment", None)
+    off = getattr(skeleton, "marker_offsets", None)
+    if seg is None or off is None:
+        return None
+    return leaf_axes_from_markers(
+        skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
     )
 
 
@@ -761,6 +973,7 @@ def write_normalized(group: Any, normalization: Normalization) -> None:
     group.attrs["scale"] = n.scale
     group.attrs["candidate_tolerance"] = n.candidate_tolerance
     group.attrs["root"] = n.root
+    group.attrs["handedness"] = n.handedness
     group.attrs["convention"] = (
         "frames are rotation matrices with the axes as columns; x_world = limb_frames @ x_limb "
         "+ limb_origins; body frame columns: frontal (anterior), sagittal (left), transverse (up)"
