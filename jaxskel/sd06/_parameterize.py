@@ -13,10 +13,12 @@ frames); the angles are computed for every frame.
 
 Filtering and axes: :mod:`jaxskel.sd06._axes` (movement samples, direction joining /
 PCA / EM). A joint has one axis when the rotations of its movement frames
-relative to a reference frame all turn about one fixed axis: the off-axis RMS,
-with the estimated rotation noise removed (:func:`_rotation_noise`,
-:func:`_one_axis_rms`), stays below ``hinge_tolerance``; else two. ``n_axes``
-overrides this per joint.
+relative to a reference frame all turn about one fixed axis, or when the
+child's long axis swings about one fixed axis (any other rotation only twists
+the limb: a foot whose heel -> toe axis is the ankle's inversion axis): the
+off-axis RMS, with the estimated rotation noise removed
+(:func:`_rotation_noise`, :func:`_one_axis_rms`, :func:`_one_swing_axis_rms`),
+stays below ``hinge_tolerance``; else two. ``n_axes`` overrides this per joint.
 
 Rest pose: the normalisation's default-pose frame ``d`` (``r = p_j(d)``,
 ``Q_rest = Q_j(d)``), so every angle is 0 in the default pose.
@@ -298,28 +300,43 @@ def _segment_poses(
 
 
 # ------------------------------------------------------------------ core
-#: Median of a chi-square variable with 3 degrees of freedom (robust noise estimate).
-_CHI2_3_MEDIAN = 2.365974
+def _rotation_noise(
+    q: Float[Array, "F 4"], defined: Bool[Array, " F"]
+) -> tuple[Float[Array, "F 3"], Float[Array, ""], Float[Array, "3 3"]]:
+    """Angular steps ``w_f = log(Q(f) Q(f-1)^T)`` (parent frame) and the noise of ``Q``: variance per component, covariance.
 
-
-def _rotation_noise(q: Float[Array, "F 4"], defined: Bool[Array, " F"]) -> tuple[Float[Array, "F 3"], Float[Array, ""]]:
-    """Angular steps ``w_f = log(Q(f) Q(f-1)^T)`` (parent frame) and the per-component noise variance of ``Q``.
-
-    Noise model: ``Q(f) = exp([e_f]) Q_true(f)`` with white ``e_f ~ N(0, s^2 I)``
-    and a motion that is smooth at the frame rate. The second difference of
-    the steps ``w_f - w_{f-1} ~ e_f - 2 e_{f-1} + e_{f-2}`` is then noise only,
-    with variance ``6 s^2`` per component, so ``s^2 = median |dw|^2 / (6 m_3)``
-    (``m_3`` the median of a chi-square variable with 3 degrees of freedom;
-    the median ignores the few frames where the motion itself jerks).
+    Noise model: ``Q(f) = exp([e_f]) Q_true(f)`` with white ``e_f ~ N(0, C)``
+    (``C`` need not be isotropic: a limb's rotation about its own long axis is
+    usually the least well determined) and a motion that is smooth at the
+    frame rate. The second difference of the steps ``dw_f = w_f - w_{f-1} ~ e_f
+    - 2 e_{f-1} + e_{f-2}`` is then noise only, with covariance ``6 C``; so
+    ``C = mean dw dw^T / 6`` over the frames whose ``|dw|^2`` is at most 9 times
+    its median (the few frames where the motion itself jerks are left out), and
+    ``s^2 = tr(C) / 3``.
     """
     step = quat_to_axis_angle(quat_multiply(q[1:], quat_conjugate(q[:-1])))
     w = jnp.concatenate([step[:1], step])
-    dw = jnp.sum((w[1:] - w[:-1]) ** 2, -1)
+    dwv = w[1:] - w[:-1]
+    dw = jnp.sum(dwv**2, -1)
     ok = defined[1:] & jnp.concatenate([defined[:1], defined[1:-1]])
     n_ok = jnp.sum(ok)
     ordered = jnp.sort(jnp.where(ok, dw, jnp.inf))
     median = ordered[jnp.maximum((n_ok - 1) // 2, 0)]
-    return jnp.where(defined[:, None], w, 0.0), jnp.where(n_ok > 0, median / (6.0 * _CHI2_3_MEDIAN), 0.0)
+    keep = (ok & (dw <= 9.0 * median)).astype(w.dtype)
+    cov = jnp.einsum("f,fi,fj->ij", keep, dwv, dwv) / jnp.maximum(jnp.sum(keep), 1.0) / 6.0
+    cov = jnp.where(n_ok > 0, cov, 0.0)
+    return jnp.where(defined[:, None], w, 0.0), jnp.trace(cov) / 3.0, cov
+
+
+def _off_line_rms(scatter: Float[Array, "3 3"], noise_cov: Float[Array, "3 3"]) -> Float[Array, ""]:
+    """``sqrt(max(l_2 + l_3 - tr(V^T N V), 0))``: the RMS off the principal line of ``scatter`` with the noise ``N`` removed.
+
+    ``V`` holds the two smaller eigenvectors of ``scatter`` (the off-line directions).
+    """
+    vals, vecs = jnp.linalg.eigh(scatter)
+    off = vecs[:, :2]
+    noise = jnp.trace(off.T @ noise_cov @ off)
+    return jnp.sqrt(jnp.maximum(vals[0] + vals[1] - noise, 0.0))  # rounding can dip below 0
 
 
 def _one_axis_rms(
@@ -327,25 +344,58 @@ def _one_axis_rms(
     p: Float[Array, "F 3"],
     movement: Bool[Array, " F"],
     centroid: Float[Array, " 3"],
-    noise_var: Float[Array, ""],
+    noise_cov: Float[Array, "3 3"],
 ) -> Float[Array, ""]:
     """How far (RMS angle, noise removed) the movement frames' rotations leave a single fixed axis.
 
     About one axis ``A``, ``Q(f) Q(g)^T = R_A(theta_f - theta_g)`` for every pair
     of frames, so the rotation vectors ``w_f = log(Q(f) Q(ref)^T)`` lie on one line.
     The off-line variance is the sum of the two smaller eigenvalues of
-    ``mean w w^T``; noise of variance ``s^2`` per component (both frames carry it,
-    so ``2 s^2`` in ``w``) adds ``2 s^2`` to each, which is removed: the result is
-    ``sqrt(max(l_2 + l_3 - 4 s^2, 0))``. Whole limb rotations are used, not
+    ``mean w w^T``; noise of covariance ``C`` (both frames carry it, so ``2 C``
+    in ``w``) adds ``2 v^T C v`` along each off-line direction ``v``, which is
+    removed (:func:`_off_line_rms`; ``4 s^2`` for isotropic noise). Whole limb rotations are used, not
     directions alone: a limb that is not orthogonal to its axis moves on a small
     circle, and a small circle can pass close to two short perpendicular arcs.
     """
     ref = jnp.argmin(jnp.where(movement, jnp.sum((p - centroid) ** 2, -1), jnp.inf))
     rotvec = quat_to_axis_angle(quat_multiply(q, quat_conjugate(q[ref])))
     w = movement.astype(p.dtype)
-    vals = jnp.linalg.eigvalsh(jnp.einsum("f,fi,fj->ij", w, rotvec, rotvec) / jnp.maximum(jnp.sum(w), 1.0))
-    off = jnp.maximum(vals[0] + vals[1] - 4.0 * noise_var, 0.0)  # rounding can dip below 0
-    return jnp.sqrt(off)
+    scatter = jnp.einsum("f,fi,fj->ij", w, rotvec, rotvec) / jnp.maximum(jnp.sum(w), 1.0)
+    return _off_line_rms(scatter, 2.0 * noise_cov)
+
+
+def _one_swing_axis_rms(
+    p: Float[Array, "F 3"],
+    movement: Bool[Array, " F"],
+    ref: Int[Array, ""],
+    noise_cov: Float[Array, "3 3"],
+) -> Float[Array, ""]:
+    """How far (RMS angle, noise removed) the limb's swings leave one fixed axis, its twist ignored.
+
+    The swing from the rest sample ``p_ref`` (the default-pose frame) to ``p_f`` is the rotation
+    vector ``v_f = theta_f (p_ref x p_f) / |p_ref x p_f|`` (``theta_f`` the angle
+    between them). When the long axis swings on one great circle about ``A``
+    (a hinge orthogonal to the limb, or a universal joint whose second axis is
+    the limb's long axis, which only twists it) every ``v_f`` lies on the line
+    of ``A``. The off-line variance is the sum of the two smaller eigenvalues
+    of ``mean v v^T`` over the movement frames that swing by more than three
+    noise deviations (``theta_f > 3 sqrt(2) s``; still or only twisting frames
+    would dilute it). Direction noise moves ``v`` across the line by the
+    rotation noise about ``A x p`` (orthogonal to the axis and the limb), which
+    over a circle about ``A`` adds ``tr(V^T C V)`` to the off-line variance (``V``
+    the off-line directions, ``C`` the rotation noise covariance; ``2 s^2`` for
+    isotropic noise); it is removed (:func:`_off_line_rms`).
+    """
+    cross = jnp.cross(p[ref][None], p)
+    sin = jnp.linalg.norm(cross, axis=-1)
+    angle = jnp.arctan2(sin, p @ p[ref])
+    v = cross * (angle / jnp.where(sin > 1e-12, sin, 1.0))[:, None]
+    # Only frames that swing clearly (beyond three noise deviations of a direction
+    # difference): frames that hold still or only twist would dilute the RMS.
+    noise_var = jnp.trace(noise_cov) / 3.0
+    w = (movement & (angle > jnp.maximum(3.0 * jnp.sqrt(2.0 * noise_var), 1e-3))).astype(p.dtype)
+    scatter = jnp.einsum("f,fi,fj->ij", w, v, v) / jnp.maximum(jnp.sum(w), 1.0)
+    return _off_line_rms(scatter, noise_cov)
 
 
 def _main_movement_frames(
@@ -393,6 +443,7 @@ def _filter_stage(
     n_axes_given: Int[Array, " J"],
     valid: Bool[Array, " F"],
     calibration: Bool[Array, " F"],
+    rest_frame: Int[Array, ""],
     *,
     n_bins: int,
     min_prominence: float,
@@ -415,7 +466,7 @@ def _filter_stage(
     def one(q, main, given):
         p = quat_rotate(q, main)
         speed, defined = _axes.speeds(p, valid)
-        w, noise_var = _rotation_noise(q, defined)
+        w, noise_var, noise_cov = _rotation_noise(q, defined)
         in_cal = calibration & valid
         threshold, counts, top = _axes.speed_threshold(
             speed, defined & in_cal, n_bins, min_prominence, low_speed_fraction
@@ -427,7 +478,9 @@ def _filter_stage(
         movement = moving & in_cal
         weight = (valid & in_cal).astype(p.dtype)
         centroid = jnp.sum(weight[:, None] * p, 0) / jnp.maximum(jnp.sum(weight), 1.0)
-        hinge_rms = _one_axis_rms(q, p, movement, centroid, noise_var)
+        hinge_rms = jnp.minimum(
+            _one_axis_rms(q, p, movement, centroid, noise_cov), _one_swing_axis_rms(p, movement, rest_frame, noise_cov)
+        )
         n_axes = jnp.where(given > 0, given, jnp.where(hinge_rms > hinge_tolerance, 2, 1))
         return {
             "q": q,
@@ -604,8 +657,9 @@ class Parameterization:
         (J,) RMS angle of the movement samples from the nearest of their axes' circles.
     hinge_rms
         (J,) RMS angle by which the movement frames' rotations (relative to a
-        reference frame) leave one fixed axis: ~0 for a one-axis joint (the
-        one-or-two-axes test, threshold ``hinge_tolerance_deg``).
+        reference frame), or the child's long-axis swings, leave one fixed
+        axis, whichever is less: ~0 for a one-axis joint (the one-or-two-axes
+        test, threshold ``hinge_tolerance_deg``).
     extent
         (J,) largest angle of any sample from the samples' mean direction.
     exercised
@@ -851,6 +905,7 @@ def parameterize_normalized(
         jnp.asarray(given),
         valid,
         jnp.asarray(np.concatenate([cal_frames, pad_false])),
+        jnp.asarray(norm.default_frame),
         **filter_options,
     )
     extracted = _axes_stage(filtered["samples"], filtered["movement"], filtered["n_axes"], **axes_options)
