@@ -7,7 +7,11 @@ Usage::
 The recording is synthetic (``synth.full_body``, every degree of freedom moving,
 the true segment poses: no IK). Each timing of ``parameterize`` runs in a fresh
 Python process (so "first call" includes JAX's tracing and compilation), then
-the same call is repeated in that process. The reference computes the same
+the same call is repeated in that process: once without persistent caches (the
+library's default), then twice with the caches the ``jaxskel`` command turns on
+(:func:`jaxskel._runtime.compile_cache.enable_compile_cache`: XLA's compiled code
+and the exported programs, in a new temporary directory), empty and then filled
+by the previous run. The reference computes the same
 per-frame quantities (relative limb rotations, samples, circle-intersection
 angles with the branch by continuity, twist) with NumPy in a Python loop over
 frames, given the axes and rest pose ``parameterize`` found; it does no axis
@@ -46,6 +50,11 @@ def recording(n_frames: int):
 def child(n_frames: int) -> None:
     """Runs in a fresh process: time the first and a repeated parameterize call; print JSON."""
     body, joints, quats, trans, rate = recording(n_frames)
+    if os.environ.get("JAXSKEL_CACHE_DIR"):
+        # what the jaxskel command does for its process: compiled code and exported programs on disk
+        from jaxskel._runtime.compile_cache import enable_compile_cache
+
+        enable_compile_cache()
     from jaxskel.sd06 import parameterize_arrays
 
     def call():
@@ -130,16 +139,26 @@ def main() -> None:
     if args.child:
         child(args.frames)
         return
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    import tempfile
+
     runs = []
-    for _ in range(2):
-        res = subprocess.run([sys.executable, __file__, "--child", "--frames", str(args.frames)], env=env,
-                             capture_output=True, text=True, check=True)
-        runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    with tempfile.TemporaryDirectory(prefix="sd06-speed-cache-") as cache:
+        cases = (
+            ("no persistent cache (library default)", ""),
+            ("`jaxskel` command's caches, empty", cache),
+            ("`jaxskel` command's caches, filled by the run above", cache),
+        )
+        for label, cache_dir in cases:
+            env = {**os.environ, "PYTHONPATH": str(ROOT), "JAXSKEL_CACHE_DIR": cache_dir}
+            res = subprocess.run([sys.executable, __file__, "--child", "--frames", str(args.frames)], env=env,
+                                 capture_output=True, text=True, check=True)
+            runs.append((label, json.loads(res.stdout.strip().splitlines()[-1])))
     ref_s, ref_diff = numpy_reference()
     import jax
 
-    device = f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores visible, JAX {jax.__version__} on {jax.default_backend()}"
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    device = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores visible (load average {load} "
+              f"at the end, shared machine), JAX {jax.__version__} on {jax.default_backend()}")
     lines = [
         "# SD06 parameterisation speed",
         "",
@@ -151,9 +170,9 @@ def main() -> None:
         "| what | seconds |",
         "|---|---|",
     ]
-    for i, r in enumerate(runs):
-        lines.append(f"| `parameterize`, first call in a fresh process (run {i + 1}; tracing and compilation included) | {r['first']:.2f} |")
-        lines.append(f"| `parameterize`, repeated call in that process (best of 3) | {r['repeat']:.3f} |")
+    for i, (label, r) in enumerate(runs):
+        lines.append(f"| run {i + 1}, {label}: `parameterize`, first call in a fresh process | {r['first']:.2f} |")
+        lines.append(f"| run {i + 1}: repeated call in that process (best of 3) | {r['repeat']:.3f} |")
     lines += [
         f"| NumPy per-frame loop: angles only, given the axes (reference) | {ref_s:.2f} |",
         "",

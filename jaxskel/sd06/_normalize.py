@@ -93,6 +93,7 @@ from .._math.rotation import (
     quat_rotate,
     quat_to_matrix,
 )
+from .._runtime import program_cache as _program_cache
 from .._runtime.precision import float64_scope
 
 __all__ = [
@@ -804,7 +805,8 @@ def normalize_arrays(
     own_norm = np.linalg.norm(own, axis=1)
     has_own = (own_norm > 1e-9) & tree.leaf
     own = np.where(has_own[:, None], own / np.maximum(own_norm, 1e-12)[:, None], 0.0)
-    out = _normalize_core(
+    out = _program_cache.call(
+        _normalize_core,
         jnp.asarray(pad(x)),
         jnp.asarray(pad(q)),
         jnp.asarray(pad(t)),

@@ -77,6 +77,7 @@ from .._math.rotation import (
     quat_to_matrix,
     quat_twist_angle,
 )
+from .._runtime import program_cache as _program_cache
 from .._runtime.precision import float64_scope
 from . import _axes
 from ._normalize import (
@@ -898,7 +899,8 @@ def parameterize_normalized(
     }
     pad_false = np.zeros(size - n_frames, bool)
     cal_frames = np.ones(n_frames, bool) if auto else cal
-    filtered = _filter_stage(
+    filtered = _program_cache.call(
+        _filter_stage,
         jnp.asarray(limb),
         jnp.asarray(norm.edges),
         jnp.asarray(main),
@@ -908,8 +910,11 @@ def parameterize_normalized(
         jnp.asarray(norm.default_frame),
         **filter_options,
     )
-    extracted = _axes_stage(filtered["samples"], filtered["movement"], filtered["n_axes"], **axes_options)
-    posed = _angles_stage(
+    extracted = _program_cache.call(
+        _axes_stage, filtered["samples"], filtered["movement"], filtered["n_axes"], **axes_options
+    )
+    posed = _program_cache.call(
+        _angles_stage,
         filtered["q"],
         filtered["samples"],
         filtered["movement"],
