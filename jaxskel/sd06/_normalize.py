@@ -24,23 +24,41 @@ The cost only sees joints, so it cannot tell a frame of the held default pose
 from one where only a leaf limb (hand, foot, head: no distal joint) moves, yet
 the leaf's frame is taken from the chosen frame. Frames whose cost is within
 ``candidate_tolerance`` (cost units, default 0.02) of the least cost are
-therefore all candidates, and the default-pose frame ``d`` is the candidate
-whose leaves are closest to their typical posture over the candidates (the
+therefore all candidates; a default pose is held, so only the stillest fifth
+of them (sum over joints of the relative rotation's angular step) can be chosen,
+and the default-pose frame ``d`` is the one of those whose leaves are closest to their typical posture over the candidates (the
 geometric median of the direction from the parent limb's origin to the leaf's
 joint, seen in the leaf's frame); the cost breaks ties. With tolerance 0 this
 is the paper's least-cost frame.
 
 Body planes at frame ``d``: the frontal normal is ``e_3``; the transverse normal
 is the up axis made orthogonal to it; the sagittal normal completes the frame.
-The front/back sign is not visible in a planar pose, so it is a convention: the
-subject's left (+y) is the side of the first joint (in joint order) that lies
-clearly off the midline (more than a quarter of the widest lateral offset), or
-the frontal normal points along ``facing`` when that world direction is given.
+The front/back sign is not visible in a planar pose, and with it left and right
+(``y = z x x``): it comes from the body, never from the order of the joints.
+With ``n`` the unsigned frontal normal, ``n_f`` the same normal carried by the
+root through frame f, and "low" meaning below a quarter of the joints' height
+range at frame d, the first conclusive cue of
+
+1. ``facing``, a world direction given by the caller: ``sign(n . facing)``;
+2. feet: the leaves with their own long axis (heel -> toe, ``leaf_axes``) whose
+   proximal joint is low point forward: ``sum n . a_leaf`` (conclusive when
+   above 0.3 per foot);
+3. knees: for every low chain of joints (proximal, middle, distal; e.g. hip,
+   knee, ankle) the middle joint's mean offset from the line of the two others
+   along ``n_f``, over the recording: knees bend forward (conclusive when above
+   0.02 body scales per chain);
+4. walking: the distance the root travels along ``n_f`` (conclusive above 2
+   body scales)
+
+decides; without one the sign makes the largest world component of ``n``
+positive (a convention, with a DegenerateMotionWarning).
 
 Limb frames at frame ``d``: the root (hierarchical root segment) gets the body
 frame. Every other segment's main orientation ``m`` runs from its proximal joint
-to the centroid of its distal joints; a leaf (no distal joint) points from its
-parent limb's origin to its proximal joint. The body normal most parallel to
+to the centroid of its distal joints; a leaf (no distal joint) takes its own
+long axis when its markers give one (``leaf_axes``: a foot's heel -> toe, a
+hand's wrist -> marker centroid; :func:`leaf_axes_from_markers`), else the
+direction from its parent limb's origin to its proximal joint. The body normal most parallel to
 ``m`` is replaced by ``+-m`` (sign kept, so the limb frame stays close to the body
 frame); of the two others, the one closer to the plane orthogonal to ``m`` is
 projected into that plane and the third axis completes a right-handed frame.
@@ -56,6 +74,7 @@ from __future__ import annotations
 
 import dataclasses
 import types
+import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -64,7 +83,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._errors import DegenerateMotionError, InputError
+from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
 from .._math.padding import bucket_size
 from .._math.rotation import (
     matrix_to_quat,
@@ -74,6 +93,7 @@ from .._math.rotation import (
     quat_rotate,
     quat_to_matrix,
 )
+from .._runtime import program_cache as _program_cache
 from .._runtime.precision import float64_scope
 
 __all__ = [
@@ -118,6 +138,10 @@ class TreeArrays:
         non-root segments (leaves and the root have zero rows).
     order
         (J,) joints in topological order (a parent's joint before its children's).
+    chain_proximal, chain_distal, chain
+        Per joint j as the middle of a chain of three joints: (J,) the proximal
+        joint of j's parent segment (-1 at the root), (J, J) weights of the
+        centroid of the child segment's distal joints, and (J,) whether both exist.
     """
 
     proximal: np.ndarray
@@ -125,6 +149,9 @@ class TreeArrays:
     origin_weights: np.ndarray
     main_weights: np.ndarray
     order: np.ndarray
+    chain_proximal: np.ndarray
+    chain_distal: np.ndarray
+    chain: np.ndarray
 
 
 def tree_arrays(edges: Any, root: int) -> TreeArrays:
@@ -164,7 +191,59 @@ def tree_arrays(edges: Any, root: int) -> TreeArrays:
     origin[root] = distal_mean[root]
     main = np.where(leaf[:, None], 0.0, distal_mean - prox)
     main[root] = 0.0
-    return TreeArrays(proximal, leaf, origin, main, np.asarray(order, dtype=int))
+    chain_proximal = proximal[edges[:, 0]]
+    chain_distal = distal_mean[edges[:, 1]]
+    chain = (chain_proximal >= 0) & ~leaf[edges[:, 1]]
+    return TreeArrays(
+        proximal, leaf, origin, main, np.asarray(order, dtype=int), chain_proximal, chain_distal, chain
+    )
+
+
+def leaf_axes_from_markers(
+    edges: Any, root: int, marker_segment: Any, marker_offsets: Any, joint_offsets: Any = None
+) -> np.ndarray:
+    """Each leaf segment's own long axis from its markers, in segment coordinates (S, 3).
+
+    For a leaf (no distal joint) with markers at ``P_i`` (segment coordinates)
+    and proximal joint ``j`` (``joint_offsets[., 1]``, the joint in the child
+    frame; zero when not given), with ``c`` the mean of ``P_i - j`` and
+    ``l_1 >= l_2`` the two largest eigenvalues (eigenvector ``e_1``) of their
+    covariance: when the markers are elongated (``l_1 >= 4 l_2``) and longer
+    along ``e_1`` than their distance from the joint (``ptp((P - j) e_1) >
+    |c|``), as heel, metatarsal and toe markers on a foot are, the axis runs
+    from the marker least to the one most advanced along ``e_1``, signed away
+    from the joint (``c . e_1 > 0``: heel -> toe); otherwise
+    (hand, head) it is the direction ``c`` from the joint to the markers. Rows
+    of non-leaf segments and of leaves without markers are zero (the
+    normalisation then uses the parent limb's direction).
+    """
+    edges = np.asarray(edges)
+    tree = tree_arrays(edges, root)
+    seg = np.asarray(marker_segment).reshape(-1)
+    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
+    if seg.shape[0] != off.shape[0]:
+        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
+    jo = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
+    out = np.zeros((tree.leaf.size, 3))
+    for s in np.flatnonzero(tree.leaf):
+        pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
+        if pts.shape[0] == 0:
+            continue
+        joint = np.zeros(3) if jo is None else jo[tree.proximal[s], 1]
+        rel = pts - joint
+        c = rel.mean(0)
+        axis = c
+        if pts.shape[0] >= 2:
+            vals, vecs = np.linalg.eigh(np.cov(rel.T, bias=True))
+            e1 = vecs[:, 2]
+            along = rel @ e1
+            if vals[2] >= 4.0 * vals[1] and np.ptp(along) > np.linalg.norm(c) and abs(c @ e1) > 1e-9:
+                # From the rearmost to the foremost marker along e_1 (heel -> toe).
+                axis = (rel[np.argmax(along)] - rel[np.argmin(along)]) * np.sign(c @ e1)
+        n = np.linalg.norm(axis)
+        if n > 1e-9:
+            out[s] = axis / n
+    return out
 
 
 def up_vector(up_axis: Any) -> np.ndarray:
@@ -182,6 +261,52 @@ def up_vector(up_axis: Any) -> np.ndarray:
     if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
         raise InputError(f"up_axis must be an axis name or a non-zero 3-vector, got {up_axis!r}")
     return v / np.linalg.norm(v)
+
+
+def calibration_mask(calibration: Any, n_frames: int, rate: float | None = None) -> np.ndarray | None:
+    """Frames (F,) bool of a calibration window, or None for "choose automatically".
+
+    ``calibration`` is None or "auto", a ``slice`` of frames, ``(start, stop)`` frame
+    indices (integers, stop exclusive; negative counts from the end), ``(t0, t1)``
+    seconds (floats; needs ``rate``) or a boolean mask of length F.
+    """
+    if calibration is None or (isinstance(calibration, str) and calibration == "auto"):
+        return None
+    if isinstance(calibration, slice):
+        mask = np.zeros(n_frames, bool)
+        mask[calibration] = True
+    else:
+        arr = np.asarray(calibration)
+        if arr.dtype == bool:
+            if arr.shape != (n_frames,):
+                raise InputError(f"a calibration mask must have one entry per frame ({n_frames}), got shape {arr.shape}")
+            mask = arr.copy()
+        elif arr.shape == (2,) and np.issubdtype(arr.dtype, np.number):
+            if np.issubdtype(arr.dtype, np.integer):
+                start, stop = (int(v) for v in arr)
+            else:
+                if rate is None or not rate > 0:
+                    raise InputError(
+                        f"calibration={tuple(calibration)} is a time range in seconds, but the motion's frame rate "
+                        "is unknown; give frames (integers) or pass rate="
+                    )
+                t0, t1 = (float(v) for v in arr)
+                if not (np.isfinite(t0) and np.isfinite(t1)) or t0 < 0 or t1 <= t0:
+                    raise InputError(f"calibration time range must be 0 <= t0 < t1 seconds, got {tuple(calibration)}")
+                start, stop = int(np.floor(t0 * rate)), int(np.ceil(t1 * rate))
+            mask = np.zeros(n_frames, bool)
+            mask[slice(start, stop)] = True
+        else:
+            raise InputError(
+                "calibration must be None (automatic), a slice or (start, stop) of frames, (t0, t1) seconds, "
+                f"a boolean mask per frame or a separate calibration motion; got {calibration!r}"
+            )
+    if mask.sum() < 3:
+        raise InputError(
+            f"the calibration window {calibration!r} holds {int(mask.sum())} of the motion's {n_frames} frames; "
+            "it needs at least 3 (the default pose and the main movements)"
+        )
+    return mask
 
 
 # ------------------------------------------------------------------ core (JAX)
@@ -243,6 +368,63 @@ def _limb_frame(m: Float[Array, " 3"], body: Float[Array, "3 3"]) -> tuple[Float
     return frame, k, sign
 
 
+#: Names of the front/back cues, in the order they are tried (``Normalization.handedness``).
+HANDEDNESS_CUES = ("facing", "feet", "knees", "walking", "none")
+
+
+def _front_evidence(
+    joints: Float[Array, "F J 3"],
+    quats: Float[Array, "F S 4"],
+    origins: Float[Array, "F S 3"],
+    valid: Bool[Array, " F"],
+    d: Int[Array, ""],
+    root: Int[Array, ""],
+    frontal: Float[Array, " 3"],
+    up: Float[Array, " 3"],
+    scale: Float[Array, ""],
+    proximal: Int[Array, " S"],
+    own_leaf: Bool[Array, " S"],
+    leaf_d: Float[Array, "S 3"],
+    chain_proximal: Int[Array, " J"],
+    chain_distal: Float[Array, "J J"],
+    chain: Bool[Array, " J"],
+) -> tuple[Float[Array, " 3"], Bool[Array, " 3"]]:
+    """Signed evidence that ``frontal`` points anterior, and whether it is conclusive, per body cue.
+
+    Cues (see the module docstring): feet, knees, walking; each is a signed
+    number along ``frontal`` (positive: anterior) and a flag.
+    """
+    heights = joints[d] @ up
+    low = jnp.min(heights) + 0.25 * (jnp.max(heights) - jnp.min(heights))
+    # Feet: leaves with their own long axis whose proximal joint is among the lowest.
+    feet = own_leaf & (heights[jnp.maximum(proximal, 0)] < low) & (proximal >= 0)
+    n_feet = jnp.sum(feet)
+    feet_score = jnp.sum(jnp.where(feet, leaf_d @ frontal, 0.0))
+    feet_ok = (n_feet > 0) & (jnp.abs(feet_score) > 0.3 * n_feet)
+    # Knees: in the lower chains (proximal -> middle -> distal joints), the middle
+    # joint's offset from the line of the two others, along the frontal normal as
+    # the root carries it through the recording (knees bend forward).
+    w = valid.astype(joints.dtype) / jnp.maximum(jnp.sum(valid), 1)
+    carry = quat_multiply(quats[:, root], quat_conjugate(quats[d, root]))
+    normal_f = quat_rotate(carry, frontal[None])  # (F, 3)
+    x_prox = joints[:, jnp.maximum(chain_proximal, 0)]
+    x_dist = jnp.einsum("jk,fkc->fjc", chain_distal, joints)
+    u = x_dist - x_prox
+    rel = joints - x_prox
+    t = jnp.sum(rel * u, -1, keepdims=True) / jnp.maximum(jnp.sum(u * u, -1, keepdims=True), 1e-12)
+    bulge = jnp.sum((rel - t * u) * normal_f[:, None], -1)  # (F, J)
+    lower = chain & (x_dist[d] @ up < low)
+    n_knees = jnp.sum(lower)
+    knee_score = jnp.sum(jnp.where(lower, w @ bulge, 0.0)) / scale
+    knee_ok = (n_knees > 0) & (jnp.abs(knee_score) > 0.02 * n_knees)
+    # Walking: distance the root travels along its frontal normal, in body scales.
+    step = origins[1:, root] - origins[:-1, root]
+    pair = valid[1:] & valid[:-1]
+    walk_score = jnp.sum(jnp.where(pair, jnp.sum(step * normal_f[1:], -1), 0.0)) / scale
+    walk_ok = jnp.abs(walk_score) > 2.0
+    return jnp.stack([feet_score, knee_score, walk_score]), jnp.stack([feet_ok, knee_ok, walk_ok])
+
+
 @jax.jit
 def _normalize_core(
     joints: Float[Array, "F J 3"],
@@ -261,6 +443,12 @@ def _normalize_core(
     facing: Float[Array, " 3"],
     weights: Float[Array, " 3"],
     candidate_tolerance: Float[Array, ""],
+    search: Bool[Array, " F"],
+    leaf_axes: Float[Array, "S 3"],
+    has_leaf_axis: Bool[Array, " S"],
+    chain_proximal: Int[Array, " J"],
+    chain_distal: Float[Array, "J J"],
+    chain: Bool[Array, " J"],
 ) -> dict[str, Array]:
     """Default-pose frame, body frame, limb frames and constant offsets (module docstring)."""
     terms, vecs = jax.vmap(default_pose_terms)(joints)
@@ -274,33 +462,50 @@ def _normalize_core(
     # them, the leaves (invisible to the joint-based cost) decide: the frame whose
     # leaves sit closest to their typical posture over the candidates, with the cost
     # as a tie-breaker (it only matters when there are no leaves).
-    least = jnp.min(cost)
-    candidate = valid & (cost <= least + candidate_tolerance)
+    least = jnp.min(jnp.where(search, cost, jnp.inf))
+    candidate = valid & search & (cost <= least + candidate_tolerance)
+    # A default pose is held: of the candidates keep the stillest fifth (joint
+    # speeds), so a frame that only passes through the pose (a twist swinging
+    # through zero moves no joint) does not stand in for it.
+    rel = quat_multiply(quat_conjugate(quats[:, edges[:, 0]]), quats[:, edges[:, 1]])
+    dot = jnp.abs(jnp.sum(rel[1:] * rel[:-1], -1))
+    step = jnp.sum(2.0 * jnp.arccos(jnp.clip(dot, 0.0, 1.0)), -1)
+    speed = jnp.concatenate([step[:1], step])
+    ordered = jnp.sort(jnp.where(candidate, speed, jnp.inf))
+    slow = candidate & (speed <= ordered[(jnp.sum(candidate) - 1) // 5])
     proximal_x = joints[:, jnp.maximum(proximal, 0)]
     toward = _unit(proximal_x - origins[:, jnp.maximum(parent, 0)])
     seen = quat_rotate(quat_conjugate(quats[:, leaves]), toward[:, leaves])  # in each leaf's frame
-    typical = _unit(jax.vmap(_geometric_median, (1, None))(seen, candidate))
+    typical = _unit(jax.vmap(_geometric_median, (1, None))(seen, slow))
     leaf_off = jnp.sum((seen - typical) ** 2, axis=(1, 2))
     score = leaf_off + 1e-3 * (cost - least) / jnp.maximum(candidate_tolerance, 1e-12)
-    d = jnp.argmin(jnp.where(candidate, score, jnp.inf))
+    d = jnp.argmin(jnp.where(slow, score, jnp.inf))
 
     # Body planes at the default frame.
     x_d = joints[d]
-    centroid = jnp.mean(x_d, axis=0)
     frontal = vecs[d][:, 0]
     up_in_plane = up - (up @ frontal) * frontal
     transverse = _unit(up_in_plane)
     lateral0 = jnp.cross(transverse, frontal)
-    offsets = (x_d - centroid) @ lateral0
-    first_lateral = jnp.argmax(jnp.abs(offsets) > 0.25 * jnp.max(jnp.abs(offsets)))
-    by_side = jnp.where(offsets[first_lateral] < 0, -1.0, 1.0)
-    by_facing = jnp.where(frontal @ facing < 0, -1.0, 1.0)
-    sign = jnp.where(jnp.any(facing != 0), by_facing, by_side).astype(joints.dtype)
+    leaf_d = quat_rotate(quats[d], leaf_axes)  # each leaf's own long axis at the default frame
+    evidence, found = _front_evidence(
+        joints, quats, origins, valid, d, root, frontal, up, scale, proximal, leaf & has_leaf_axis, leaf_d,
+        chain_proximal, chain_distal, chain,
+    )
+    evidence = jnp.concatenate([jnp.stack([frontal @ facing]), evidence])
+    found = jnp.concatenate([jnp.stack([jnp.any(facing != 0)]), found])
+    cue = jnp.where(jnp.any(found), jnp.argmax(found), found.shape[0])
+    # No cue: an arbitrary but order-independent convention (reported, see normalize_arrays).
+    fallback = frontal[jnp.argmax(jnp.abs(frontal))]
+    chosen = jnp.where(jnp.any(found), evidence[jnp.minimum(cue, found.shape[0] - 1)], fallback)
+    sign = jnp.where(chosen < 0, -1.0, 1.0).astype(joints.dtype)
     body = jnp.stack([sign * frontal, sign * lateral0, transverse], axis=1)
 
     # Limb frames at the default frame.
     proximal_d = x_d[jnp.maximum(proximal, 0)]
-    main_d = jnp.where(leaf[:, None], proximal_d - origins[d][jnp.maximum(parent, 0)], main_weights @ x_d)
+    shank_like = proximal_d - origins[d][jnp.maximum(parent, 0)]
+    leaf_main = jnp.where(has_leaf_axis[:, None], leaf_d, shank_like)
+    main_d = jnp.where(leaf[:, None], leaf_main, main_weights @ x_d)
     frames_d, main_axis, main_sign = jax.vmap(_limb_frame, in_axes=(0, None))(main_d, body)
     is_root = jnp.arange(frames_d.shape[0]) == root
     frames_d = jnp.where(is_root[:, None, None], body, frames_d)
@@ -326,6 +531,8 @@ def _normalize_core(
         "scale": scale,
         "default_frame": d,
         "body_frame": body,
+        "handedness": cue,
+        "front_evidence": evidence,
         "up_in_plane": jnp.linalg.norm(up_in_plane),
         "main_length": jnp.linalg.norm(main_d, axis=-1),
         "main_axis": main_axis,
@@ -398,6 +605,18 @@ class Normalization:
     origins_local
         (S, 3) each limb origin in its segment's coordinates, or None when the
         segment translations were not given.
+    calibration
+        (F,) the frames the default pose was searched in (all, unless a
+        calibration window was given).
+    handedness
+        The body cue that fixed front/back and so left/right (:data:`HANDEDNESS_CUES`):
+        "facing" (given), "feet", "knees", "walking" or "none" (a convention).
+    front_evidence
+        (4,) each cue's signed evidence that the body frame's unsigned frontal
+        normal points anterior: facing cosine, feet (sum of cosines), knees
+        (summed mean bulge in body scales), walking (distance in body scales).
+    leaf_axes
+        (S, 3) the leaves' own long axes in segment coordinates (zero rows: none).
     """
 
     edges: np.ndarray
@@ -419,6 +638,10 @@ class Normalization:
     main_sign: np.ndarray
     joint_offsets: np.ndarray
     origins_local: np.ndarray | None = None
+    calibration: np.ndarray | None = None
+    handedness: str = "none"
+    front_evidence: np.ndarray | None = None
+    leaf_axes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -477,6 +700,9 @@ def normalize_arrays(
     facing: Any = None,
     segment_translations: Float[Any, "F S 3"] | None = None,
     candidate_tolerance: float = 0.02,
+    calibration: Any = None,
+    rate: float | None = None,
+    leaf_axes: Float[Any, "S 3"] | None = None,
 ) -> Normalization:
     """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
 
@@ -504,6 +730,22 @@ def normalize_arrays(
     candidate_tolerance
         Frames whose cost exceeds the least cost by at most this much are
         default-pose candidates (see the module docstring); 0 keeps the least-cost frame.
+    calibration
+        Frames the default pose is searched in: None (all), a ``slice`` or
+        ``(start, stop)`` of frames, ``(t0, t1)`` seconds (floats, with ``rate``)
+        or a boolean mask (F,). Limb frames are still given for every frame.
+    rate
+        Frames per second (only needed for a calibration window in seconds).
+    leaf_axes
+        Optional (S, 3): each leaf segment's own long axis in its segment
+        coordinates (e.g. heel -> toe, :func:`leaf_axes_from_markers`); zero rows
+        (and every leaf when None) take the direction of the parent limb.
+
+    Warns
+    -----
+    DegenerateMotionWarning
+        When no body cue tells front from back (module docstring): the sign is
+        then a convention (``handedness`` "none"); pass ``facing``.
     """
     x = np.asarray(joint_positions)
     q = np.asarray(rotations)
@@ -546,13 +788,25 @@ def normalize_arrays(
                 f"segment_translations must be finite, shape {(n_frames, n_joints + 1, 3)}, got {t.shape}"
             )
     size = bucket_size(n_frames)
+    search = calibration_mask(calibration, n_frames, rate)
+    search = np.ones(n_frames, bool) if search is None else search
 
     def pad(a):
         return np.concatenate([a, np.repeat(a[-1:], size - n_frames, axis=0)]).astype(dtype)
 
     parent = np.full(n_joints + 1, -1)
     parent[edges_np[:, 1]] = edges_np[:, 0]
-    out = _normalize_core(
+    if leaf_axes is None:
+        own = np.zeros((n_joints + 1, 3))
+    else:
+        own = np.asarray(leaf_axes, dtype=float)
+        if own.shape != (n_joints + 1, 3) or not np.all(np.isfinite(own)):
+            raise InputError(f"leaf_axes must be finite, shape ({n_joints + 1}, 3) (one row per segment), got {own.shape}")
+    own_norm = np.linalg.norm(own, axis=1)
+    has_own = (own_norm > 1e-9) & tree.leaf
+    own = np.where(has_own[:, None], own / np.maximum(own_norm, 1e-12)[:, None], 0.0)
+    out = _program_cache.call(
+        _normalize_core,
         jnp.asarray(pad(x)),
         jnp.asarray(pad(q)),
         jnp.asarray(pad(t)),
@@ -569,9 +823,24 @@ def normalize_arrays(
         jnp.asarray(face, dtype),
         jnp.asarray([w["plane"], w["ratio"], w["spread"]], dtype),
         jnp.asarray(candidate_tolerance, dtype),
+        jnp.asarray(np.concatenate([search, np.zeros(size - n_frames, bool)])),
+        jnp.asarray(own, dtype),
+        jnp.asarray(has_own),
+        jnp.asarray(tree.chain_proximal),
+        jnp.asarray(tree.chain_distal, dtype),
+        jnp.asarray(tree.chain),
     )
     out = {k: np.asarray(v) for k, v in out.items()}
     d = int(out["default_frame"])
+    handedness = HANDEDNESS_CUES[int(out["handedness"])]
+    if handedness == "none":
+        warnings.warn(
+            "front and back (and so left and right) could not be told from the body: no foot points "
+            "forward, no knee bends and the subject does not walk; the body frame's front is a "
+            "convention. Pass facing= (the direction the subject faces) to fix it.",
+            DegenerateMotionWarning,
+            stacklevel=3,
+        )
     if out["up_in_plane"] < 0.1:
         raise DegenerateMotionError(
             f"in the default-pose frame {d} the best-fit body plane is (nearly) horizontal, so the "
@@ -604,6 +873,10 @@ def normalize_arrays(
         main_sign=out["main_sign"],
         joint_offsets=out["joint_offsets"],
         origins_local=None if segment_translations is None else out["origins_local"],
+        calibration=search,
+        handedness=handedness,
+        front_evidence=out["front_evidence"],
+        leaf_axes=own,
     )
 
 
@@ -616,13 +889,17 @@ def normalize(
     weights: Mapping[str, float] | None = None,
     facing: Any = None,
     candidate_tolerance: float = 0.02,
+    calibration: Any = None,
 ) -> Normalization:
     """Skeleton-aligned limb frames for a fitted motion (Sar Dessai et al. 2006, §3).
 
-    ``skeleton`` needs ``.edges`` (J, 2) and ``.root``; ``motion`` needs
+    ``skeleton`` needs ``.edges`` (J, 2) and ``.root`` (with ``.marker_segment``
+    and ``.marker_offsets`` the leaves get their own long axes,
+    :func:`leaf_axes_from_markers`); ``motion`` needs
     ``.joint_positions`` (F, J, 3), ``.rotations`` (F, S, 4) and, optionally,
     ``.segment_translations`` (F, S, 3). ``up_axis`` is the recording's vertical
-    (``Trial.up_axis``); see :func:`normalize_arrays` for the other options.
+    (``Trial.up_axis``); see :func:`normalize_arrays` for the other options
+    (``motion.rate`` serves a calibration window in seconds).
     """
     for obj, names in ((skeleton, ("edges", "root")), (motion, ("joint_positions", "rotations"))):
         missing = [n for n in names if getattr(obj, n, None) is None]
@@ -646,6 +923,20 @@ def normalize(
         facing=facing,
         segment_translations=getattr(motion, "segment_translations", None),
         candidate_tolerance=candidate_tolerance,
+        calibration=calibration,
+        rate=getattr(motion, "rate", None),
+        leaf_axes=skeleton_leaf_axes(skeleton),
+    )
+
+
+def skeleton_leaf_axes(skeleton: Any) -> np.ndarray | None:
+    """:func:`leaf_axes_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
+    seg = getattr(skeleton, "marker_segment", None)
+    off = getattr(skeleton, "marker_offsets", None)
+    if seg is None or off is None:
+        return None
+    return leaf_axes_from_markers(
+        skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
     )
 
 
@@ -684,6 +975,7 @@ def write_normalized(group: Any, normalization: Normalization) -> None:
     group.attrs["scale"] = n.scale
     group.attrs["candidate_tolerance"] = n.candidate_tolerance
     group.attrs["root"] = n.root
+    group.attrs["handedness"] = n.handedness
     group.attrs["convention"] = (
         "frames are rotation matrices with the axes as columns; x_world = limb_frames @ x_limb "
         "+ limb_origins; body frame columns: frontal (anterior), sagittal (left), transverse (up)"

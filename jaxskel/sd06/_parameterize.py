@@ -6,24 +6,38 @@ and the sample is the child's unit long axis in the parent joint frame,
 ``p_j(f) = Q_j(f) m_c`` (``m_c`` = ``main_sign * e_main`` of the child): a point on
 the unit joint sphere.
 
+Calibration: the default pose, the movement filter, the axes and the axis
+count come from the calibration frames only (a given window, a separate
+calibration recording, every frame, or with "auto" each joint's main-movement
+frames); the angles are computed for every frame.
+
 Filtering and axes: :mod:`jaxskel.sd06._axes` (movement samples, direction joining /
-PCA / EM, rest direction ``r``, rest frame and ``Q_rest = Q_j(rest frame)``). A joint
-has one axis when the rotations of its movement frames relative to a reference
-frame all turn about one fixed axis (RMS deviation below ``hinge_tolerance``),
-else two; ``n_axes`` overrides this per joint.
+PCA / EM). A joint has one axis when the rotations of its movement frames
+relative to a reference frame all turn about one fixed axis, or when the
+child's long axis swings about one fixed axis (any other rotation only twists
+the limb: a foot whose heel -> toe axis is the ankle's inversion axis): the
+off-axis RMS, with the estimated rotation noise removed
+(:func:`_rotation_noise`, :func:`_one_axis_rms`, :func:`_one_swing_axis_rms`),
+stays below ``hinge_tolerance``; else two. ``n_axes`` overrides this per joint.
+
+Rest pose: the normalisation's default-pose frame ``d`` (``r = p_j(d)``,
+``Q_rest = Q_j(d)``), so every angle is 0 in the default pose.
 
 Angles. One axis ``A``: ``alpha`` is the signed angle from ``r`` to ``p`` about
 ``A`` (both projected on the plane orthogonal to ``A``). Two axes, ``p = R_B(beta)
 R_A(alpha) r``: the circle reachable from ``r`` about ``A`` (plane ``A.x = A.r``) and
 the circle reaching ``p`` about ``B`` (plane ``B.x = B.p``) meet on the line of the two
-planes; its intersections with the sphere are the candidates for the intermediate
-``x``, and the one closer to the previous frame's keeps the trajectory smooth (a
-scan over frames, starting from ``x = r``). Then ``alpha`` takes ``r`` to ``x`` about
-``A`` and ``beta`` takes ``x`` to ``p`` about ``B``. Which extracted axis acts first is
-decided per joint from the data: ``A`` moves with the child and ``B`` stays in the
-parent, so ``B . (Q Q_rest^T A)`` keeps the value ``A . B``; the order in which this
-varies less over the movement frames is kept (for a universal joint the right
-order then needs no twist).
+planes; its two intersections with the sphere give two angle pairs. Walking
+from the rest frame forward and backward in time, the pair of least
+``|wrap(d alpha)|^2 + |wrap(d beta)|^2 + w (alpha^2 + beta^2)`` is kept
+(:func:`_two_axis_angles`): continuity with the previous frame, and near a
+tangency (where the two solutions meet and continuity cannot tell them apart)
+the one nearer the rest pose. Which extracted axis acts first: ``A`` moves with
+the child and ``B`` stays in the parent, so ``B . (Q Q_rest^T A)`` keeps the
+value ``A . B``; when one order keeps this clearly better (combined movement)
+it is used, else (a protocol moves one axis at a time, which keeps both) the
+order that keeps the calibration samples farthest from ``+-B``, where the
+model is singular.
 
 Twist, in closed form (the paper sampled it). With the swing ``S = R_B(beta)
 R_A(alpha)`` and ``d = S r``, the twist ``tau`` minimising ``|R_d(tau) S Q_rest - Q|_F``
@@ -63,10 +77,12 @@ from .._math.rotation import (
     quat_to_matrix,
     quat_twist_angle,
 )
+from .._runtime import program_cache as _program_cache
 from .._runtime.precision import float64_scope
 from . import _axes
 from ._normalize import (
     Normalization,
+    calibration_mask,
     freeze_fields,
     normalize,
     normalize_arrays,
@@ -102,15 +118,45 @@ def _angle_about(a: Float[Array, "... 3"], u: Float[Array, "... 3"], v: Float[Ar
 
 
 # ------------------------------------------------------------------ angles
-def _intermediates(
-    p: Float[Array, "F 3"], valid: Bool[Array, " F"], r: Float[Array, " 3"], a: Float[Array, " 3"], b: Float[Array, " 3"]
-) -> Float[Array, "F 3"]:
-    """The intermediate ``x`` of every frame: circle intersection, smooth choice of the two candidates.
+#: Weight of the rest-pose preference in the choice between the two circle intersections.
+REST_PREFERENCE = 0.1
 
-    The candidates are computed for all frames at once; a scan then keeps, frame
-    by frame, the one closer to the previous choice (frame 0: closer to ``r``).
-    Padded frames keep the previous choice.
+
+def _wrap(x: Array) -> Array:
+    return jnp.mod(x + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def _two_axis_angles(
+    p: Float[Array, "F 3"],
+    valid: Bool[Array, " F"],
+    r: Float[Array, " 3"],
+    a: Float[Array, " 3"],
+    b: Float[Array, " 3"],
+    start: Int[Array, ""],
+    first: Bool[Array, " F"],
+) -> tuple[Float[Array, " F"], Float[Array, " F"]]:
+    """``(alpha, beta)`` per frame by circle intersection, the two solutions told apart by continuity.
+
+    The circle reachable from ``r`` about ``a`` (plane ``a.x = a.r``) and the
+    circle reaching ``p`` about ``b`` (plane ``b.x = b.p``) meet where their
+    planes' line ``x0 + t (a x b)/|a x b|`` cuts the sphere: two candidates
+    ``x+-`` with angles ``(alpha+-, beta+-)`` (``alpha`` takes ``r`` to ``x``
+    about ``a``, ``beta`` takes ``x`` to ``p`` about ``b``), computed for all
+    frames at once. The choice starts at frame ``start`` (the rest pose, angles
+    0) and walks forward and backward in time (one scan, batched over the two
+    directions), keeping at each frame the candidate of least
+
+        |wrap(alpha - alpha_prev)|^2 + |wrap(beta - beta_prev)|^2 + w (alpha^2 + beta^2),
+
+    continuity with the previous frame plus a small preference (``w`` =
+    :data:`REST_PREFERENCE`) for the rest pose. Far from a tangency one candidate
+    is a whole branch away and continuity decides; where the circles touch the
+    candidates meet and swap, continuity cannot tell them apart and the
+    solution nearer the rest pose is kept rather than the far one. Where a new
+    take begins (``first``; walking backward: where one ends) the previous
+    angles restart at 0. Padded frames keep the previous choice.
     """
+    n = p.shape[0]
     c = a @ b
     h1 = a @ r
     h2 = p @ b
@@ -118,15 +164,35 @@ def _intermediates(
     x0 = ((h1 - c * h2)[:, None] * a + (h2 - c * h1)[:, None] * b) / denom
     line = _unit(jnp.cross(a, b))
     t = jnp.sqrt(jnp.maximum(1.0 - jnp.sum(x0 * x0, -1), 0.0))[:, None]
+    cand = _unit(jnp.stack([x0 + t * line, x0 - t * line], axis=1))  # (F, 2, 3)
+    alpha = _angle_about(a, r, cand)  # (F, 2)
+    beta = _angle_about(b, cand, p[:, None])
+    ab = jnp.stack([alpha, beta], axis=-1)  # (F, 2 candidates, 2 angles)
 
-    def choose(prev, cand):
-        plus, minus, ok = cand
-        x = jnp.where(jnp.sum((plus - prev) ** 2) <= jnp.sum((minus - prev) ** 2), plus, minus)
-        x = jnp.where(ok, x, prev)
-        return x, x
+    steps = jnp.arange(n)
+    index = jnp.stack([start + steps, start - steps])  # forward, backward from the rest frame
+    inside = (index >= 0) & (index < n)
+    index = jnp.clip(index, 0, n - 1)
+    ok = inside & valid[index]
+    last = jnp.concatenate([first[1:], jnp.ones(1, bool)])
+    reset = jnp.stack([first[index[0]], last[index[1]]]) & (steps > 0)
 
-    _, x = jax.lax.scan(choose, r, (x0 + t * line, x0 - t * line, valid))
-    return _unit(x)
+    def choose(prev, x):
+        ab, ok, reset = x  # (2 dirs, 2 cands, 2), (2,), (2,)
+        prev = jnp.where(reset[:, None], 0.0, prev)
+        cost = jnp.sum(_wrap(ab - prev[:, None]) ** 2, -1) + REST_PREFERENCE * jnp.sum(ab**2, -1)
+        pick = jnp.where((cost[:, 0] <= cost[:, 1])[:, None], ab[:, 0], ab[:, 1])
+        pick = jnp.where(ok[:, None], pick, prev)
+        return pick, pick
+
+    _, walked = jax.lax.scan(choose, jnp.zeros((2, 2), p.dtype), (jnp.swapaxes(ab[index], 0, 1), ok.T, reset.T))
+    after = steps >= start
+    out = jnp.where(
+        after[:, None],
+        walked[jnp.clip(steps - start, 0, n - 1), 0],
+        walked[jnp.clip(start - steps, 0, n - 1), 1],
+    )
+    return out[:, 0], out[:, 1]
 
 
 def swing_twist_angles(
@@ -137,8 +203,16 @@ def swing_twist_angles(
     n_axes: Int[Array, ""],
     rest_rotation: Float[Array, " 4"],
     rest_direction: Float[Array, " 3"],
+    rest_frame: Int[Array, ""],
+    first: Bool[Array, " F"] | None = None,
 ) -> tuple[Float[Array, "F 3"], Float[Array, " F"]]:
     """Angles ``(alpha, beta, tau)`` per frame of one joint and the direction residual (radians).
+
+    ``rest_frame`` is the frame of the rest pose (``Q = Q_rest`` there, so all
+    three angles are 0): the circle-intersection choice walks from it in both
+    directions of time (:func:`_two_axis_angles`). Angles are in ``(-pi, pi]``.
+    ``first`` (F,) marks frames that begin a new take (a separate calibration
+    trial before the motion); default: frame 0 only.
 
     ``q`` are the relative limb rotations ``Q_j(f)`` as quaternions, ``p`` the
     samples; ``axes[0]`` acts first (``alpha``), ``axes[1]`` second (``beta``; unused
@@ -149,10 +223,12 @@ def swing_twist_angles(
     direction (0 when the model reaches the sample).
     """
     a, b = axes[0], axes[1]
-    x = _intermediates(p, valid, rest_direction, a, b)
+    if first is None:
+        first = jnp.arange(p.shape[0]) == 0
+    alpha2, beta2 = _two_axis_angles(p, valid, rest_direction, a, b, rest_frame, first)
     two = (n_axes > 1) & (jnp.linalg.norm(jnp.cross(a, b)) > 1e-6)
-    alpha = jnp.where(two, _angle_about(a, rest_direction, x), _angle_about(a, rest_direction, p))
-    beta = jnp.where(two, _angle_about(b, x, p), 0.0)
+    alpha = jnp.where(two, alpha2, _angle_about(a, rest_direction, p))
+    beta = jnp.where(two, beta2, 0.0)
     swing = quat_multiply(axis_angle_to_quat(b * beta[..., None]), axis_angle_to_quat(a * alpha[..., None]))
     d = quat_rotate(swing, rest_direction)
     tau = quat_twist_angle(quat_multiply(q, quat_conjugate(quat_multiply(swing, rest_rotation))), d)
@@ -225,53 +301,187 @@ def _segment_poses(
 
 
 # ------------------------------------------------------------------ core
+def _rotation_noise(
+    q: Float[Array, "F 4"], defined: Bool[Array, " F"]
+) -> tuple[Float[Array, "F 3"], Float[Array, ""], Float[Array, "3 3"]]:
+    """Angular steps ``w_f = log(Q(f) Q(f-1)^T)`` (parent frame) and the noise of ``Q``: variance per component, covariance.
+
+    Noise model: ``Q(f) = exp([e_f]) Q_true(f)`` with white ``e_f ~ N(0, C)``
+    (``C`` need not be isotropic: a limb's rotation about its own long axis is
+    usually the least well determined) and a motion that is smooth at the
+    frame rate. The second difference of the steps ``dw_f = w_f - w_{f-1} ~ e_f
+    - 2 e_{f-1} + e_{f-2}`` is then noise only, with covariance ``6 C``; so
+    ``C = mean dw dw^T / 6`` over the frames whose ``|dw|^2`` is at most 9 times
+    its median (the few frames where the motion itself jerks are left out), and
+    ``s^2 = tr(C) / 3``.
+    """
+    step = quat_to_axis_angle(quat_multiply(q[1:], quat_conjugate(q[:-1])))
+    w = jnp.concatenate([step[:1], step])
+    dwv = w[1:] - w[:-1]
+    dw = jnp.sum(dwv**2, -1)
+    ok = defined[1:] & jnp.concatenate([defined[:1], defined[1:-1]])
+    n_ok = jnp.sum(ok)
+    ordered = jnp.sort(jnp.where(ok, dw, jnp.inf))
+    median = ordered[jnp.maximum((n_ok - 1) // 2, 0)]
+    keep = (ok & (dw <= 9.0 * median)).astype(w.dtype)
+    cov = jnp.einsum("f,fi,fj->ij", keep, dwv, dwv) / jnp.maximum(jnp.sum(keep), 1.0) / 6.0
+    cov = jnp.where(n_ok > 0, cov, 0.0)
+    return jnp.where(defined[:, None], w, 0.0), jnp.trace(cov) / 3.0, cov
+
+
+def _off_line_rms(scatter: Float[Array, "3 3"], noise_cov: Float[Array, "3 3"]) -> Float[Array, ""]:
+    """``sqrt(max(l_2 + l_3 - tr(V^T N V), 0))``: the RMS off the principal line of ``scatter`` with the noise ``N`` removed.
+
+    ``V`` holds the two smaller eigenvectors of ``scatter`` (the off-line directions).
+    """
+    vals, vecs = jnp.linalg.eigh(scatter)
+    off = vecs[:, :2]
+    noise = jnp.trace(off.T @ noise_cov @ off)
+    return jnp.sqrt(jnp.maximum(vals[0] + vals[1] - noise, 0.0))  # rounding can dip below 0
+
+
 def _one_axis_rms(
-    q: Float[Array, "F 4"], p: Float[Array, "F 3"], movement: Bool[Array, " F"], centroid: Float[Array, " 3"]
+    q: Float[Array, "F 4"],
+    p: Float[Array, "F 3"],
+    movement: Bool[Array, " F"],
+    centroid: Float[Array, " 3"],
+    noise_cov: Float[Array, "3 3"],
 ) -> Float[Array, ""]:
-    """How far (RMS angle) the movement frames' rotations leave a single fixed axis.
+    """How far (RMS angle, noise removed) the movement frames' rotations leave a single fixed axis.
 
     About one axis ``A``, ``Q(f) Q(g)^T = R_A(theta_f - theta_g)`` for every pair
     of frames, so the rotation vectors ``w_f = log(Q(f) Q(ref)^T)`` lie on one line.
-    The test uses whole limb rotations, not directions alone: a limb that is not
-    orthogonal to its axis moves on a small circle, and a small circle can pass
-    close to two short perpendicular arcs (two axes exercised one way each).
+    The off-line variance is the sum of the two smaller eigenvalues of
+    ``mean w w^T``; noise of covariance ``C`` (both frames carry it, so ``2 C``
+    in ``w``) adds ``2 v^T C v`` along each off-line direction ``v``, which is
+    removed (:func:`_off_line_rms`; ``4 s^2`` for isotropic noise). Whole limb rotations are used, not
+    directions alone: a limb that is not orthogonal to its axis moves on a small
+    circle, and a small circle can pass close to two short perpendicular arcs.
     """
     ref = jnp.argmin(jnp.where(movement, jnp.sum((p - centroid) ** 2, -1), jnp.inf))
     rotvec = quat_to_axis_angle(quat_multiply(q, quat_conjugate(q[ref])))
     w = movement.astype(p.dtype)
-    _, vecs = jnp.linalg.eigh(jnp.einsum("f,fi,fj->ij", w, rotvec, rotvec))
-    along = rotvec @ vecs[:, 2]
-    off = jnp.maximum(jnp.sum(rotvec**2, -1) - along**2, 0.0)  # rounding can dip below 0
-    return jnp.sqrt(jnp.sum(w * off) / jnp.maximum(jnp.sum(w), 1.0))
+    scatter = jnp.einsum("f,fi,fj->ij", w, rotvec, rotvec) / jnp.maximum(jnp.sum(w), 1.0)
+    return _off_line_rms(scatter, 2.0 * noise_cov)
+
+
+def _one_swing_axis_rms(
+    p: Float[Array, "F 3"],
+    movement: Bool[Array, " F"],
+    ref: Int[Array, ""],
+    noise_cov: Float[Array, "3 3"],
+) -> Float[Array, ""]:
+    """How far (RMS angle, noise removed) the limb's swings leave one fixed axis, its twist ignored.
+
+    The swing from the rest sample ``p_ref`` (the default-pose frame) to ``p_f`` is the rotation
+    vector ``v_f = theta_f (p_ref x p_f) / |p_ref x p_f|`` (``theta_f`` the angle
+    between them). When the long axis swings on one great circle about ``A``
+    (a hinge orthogonal to the limb, or a universal joint whose second axis is
+    the limb's long axis, which only twists it) every ``v_f`` lies on the line
+    of ``A``. The off-line variance is the sum of the two smaller eigenvalues
+    of ``mean v v^T`` over the movement frames that swing by more than three
+    noise deviations (``theta_f > 3 sqrt(2) s``; still or only twisting frames
+    would dilute it). Direction noise moves ``v`` across the line by the
+    rotation noise about ``A x p`` (orthogonal to the axis and the limb), which
+    over a circle about ``A`` adds ``tr(V^T C V)`` to the off-line variance (``V``
+    the off-line directions, ``C`` the rotation noise covariance; ``2 s^2`` for
+    isotropic noise); it is removed (:func:`_off_line_rms`).
+    """
+    cross = jnp.cross(p[ref][None], p)
+    sin = jnp.linalg.norm(cross, axis=-1)
+    angle = jnp.arctan2(sin, p @ p[ref])
+    v = cross * (angle / jnp.where(sin > 1e-12, sin, 1.0))[:, None]
+    # Only frames that swing clearly (beyond three noise deviations of a direction
+    # difference): frames that hold still or only twist would dilute the RMS.
+    noise_var = jnp.trace(noise_cov) / 3.0
+    w = (movement & (angle > jnp.maximum(3.0 * jnp.sqrt(2.0 * noise_var), 1e-3))).astype(p.dtype)
+    scatter = jnp.einsum("f,fi,fj->ij", w, v, v) / jnp.maximum(jnp.sum(w), 1.0)
+    return _off_line_rms(scatter, noise_cov)
+
+
+def _main_movement_frames(
+    w: Float[Array, "F 3"], movement: Bool[Array, " F"], noise_var: Float[Array, ""], window: int, purity: float
+) -> Bool[Array, " F"]:
+    """Frames inside a main movement: the joint turns about one fixed axis (automatic calibration).
+
+    Around every frame, the scatter ``S = sum w w^T`` of the angular steps over
+    ``window`` frames (prefix sums: one pass) has eigenvalues ``l_1 >= l_2 >= l_3``;
+    noise adds ``n s^2`` to each (n frames in the window), which is removed. A
+    frame belongs to a main movement when the joint moves there (``movement``),
+    the noise-free rotation exceeds the noise (``l_1' > 9 n s^2``, three
+    standard deviations) and one axis explains at least ``purity`` of it,
+    ``l_1' / (l_1' + l_2' + l_3') >= purity``. A calibration protocol (one
+    movement at a time) passes; free movement, where several degrees of
+    freedom change together, mostly does not.
+    """
+    n = w.shape[0]
+    outer = jnp.einsum("fi,fj->fij", w, w)
+    cum = jnp.concatenate([jnp.zeros((1, 3, 3), w.dtype), jnp.cumsum(outer, axis=0)])
+    half = window // 2
+    idx = jnp.arange(n)
+    lo, hi = jnp.clip(idx - half, 0, n), jnp.clip(idx + half + 1, 0, n)
+    scatter = cum[hi] - cum[lo]
+    count = (hi - lo).astype(w.dtype)
+    vals = jnp.maximum(jnp.linalg.eigvalsh(scatter) - (count * noise_var)[:, None], 0.0)
+    total = jnp.sum(vals, -1)
+    strong = vals[:, 2] > 9.0 * count * noise_var
+    pure = vals[:, 2] >= purity * jnp.maximum(total, 1e-300)
+    return movement & strong & pure & (total > 0)
 
 
 # Three jitted stages, joint-major inside (vmapped over joints); only the middle
 # one depends on the axis-extraction method, so trying another method recompiles
 # only that stage.
-@functools.partial(jax.jit, static_argnames=("n_bins", "min_prominence", "low_speed_fraction", "hinge_tolerance"))
+@functools.partial(
+    jax.jit,
+    static_argnames=("n_bins", "min_prominence", "low_speed_fraction", "hinge_tolerance", "auto", "window", "purity",
+                     "min_calibration"),
+)
 def _filter_stage(
     limb: Float[Array, "F S 4"],
     edges: Int[Array, "J 2"],
     main: Float[Array, "S 3"],
     n_axes_given: Int[Array, " J"],
     valid: Bool[Array, " F"],
+    calibration: Bool[Array, " F"],
+    rest_frame: Int[Array, ""],
     *,
     n_bins: int,
     min_prominence: float,
     low_speed_fraction: float,
     hinge_tolerance: float,
+    auto: bool,
+    window: int,
+    purity: float,
+    min_calibration: int,
 ) -> dict[str, Array]:
-    """Relative rotations, samples, movement filter (§4.1) and the number of axes per joint."""
+    """Relative rotations, samples, calibration frames, movement filter (§4.1) and axes per joint.
+
+    ``calibration`` (F,) are the frames the axes may come from (given, or all
+    valid frames when ``auto``; then each joint keeps only its main-movement
+    frames, :func:`_main_movement_frames`, or all frames when fewer than
+    ``min_calibration`` are found).
+    """
     q = jnp.swapaxes(quat_multiply(quat_conjugate(limb[:, edges[:, 0]]), limb[:, edges[:, 1]]), 0, 1)
 
     def one(q, main, given):
         p = quat_rotate(q, main)
         speed, defined = _axes.speeds(p, valid)
-        threshold, counts, top = _axes.speed_threshold(speed, defined, n_bins, min_prominence, low_speed_fraction)
-        movement = defined & (speed > threshold)
-        weight = valid.astype(p.dtype)
+        w, noise_var, noise_cov = _rotation_noise(q, defined)
+        in_cal = calibration & valid
+        threshold, counts, top = _axes.speed_threshold(
+            speed, defined & in_cal, n_bins, min_prominence, low_speed_fraction
+        )
+        moving = defined & (speed > threshold)
+        if auto:
+            found = _main_movement_frames(w, moving, noise_var, window, purity) & in_cal
+            in_cal = jnp.where(jnp.sum(found) >= min_calibration, found, in_cal)
+        movement = moving & in_cal
+        weight = (valid & in_cal).astype(p.dtype)
         centroid = jnp.sum(weight[:, None] * p, 0) / jnp.maximum(jnp.sum(weight), 1.0)
-        hinge_rms = _one_axis_rms(q, p, movement, centroid)
+        hinge_rms = jnp.minimum(
+            _one_axis_rms(q, p, movement, centroid, noise_cov), _one_swing_axis_rms(p, movement, rest_frame, noise_cov)
+        )
         n_axes = jnp.where(given > 0, given, jnp.where(hinge_rms > hinge_tolerance, 2, 1))
         return {
             "q": q,
@@ -281,6 +491,8 @@ def _filter_stage(
             "histogram": counts,
             "top_speed": top,
             "movement": movement,
+            "calibration": in_cal,
+            "noise": jnp.sqrt(noise_var),
             "centroid": centroid,
             "hinge_rms": hinge_rms,
             "n_axes": n_axes,
@@ -331,14 +543,16 @@ def _angles_stage(
     n_axes: Int[Array, " J"],
     axes: Float[Array, "J 2 3"],
     offsets: Float[Array, "J 2"],
+    rest_frame: Int[Array, ""],
+    first: Bool[Array, " F"],
+    calibration: Bool[Array, "J F"],
+    noise: Float[Array, " J"],
 ) -> dict[str, Array]:
-    """Rest position (§4.3), axis order, angles and twist (§4.4-4.5), fit diagnostics."""
+    """Rest position (the default pose), axis order, angles and twist (§4.3-4.5), fit diagnostics."""
 
-    def one(q, p, movement, centroid, n_axes, axes, offsets):
+    def one(q, p, movement, centroid, n_axes, axes, offsets, calibration, noise):
         moving = movement.astype(p.dtype)
         axes = axes.at[1].set(jnp.where(n_axes > 1, axes[1], 0.0))
-        target = _axes.rest_target(axes, n_axes, centroid)
-        rest_frame = jnp.argmin(jnp.where(valid, jnp.sum((p - target) ** 2, -1), jnp.inf))
         rest_direction = p[rest_frame]
         rest_rotation = q[rest_frame]
 
@@ -347,11 +561,20 @@ def _angles_stage(
         carried = quat_rotate(quat_multiply(q, quat_conjugate(rest_rotation))[:, None], axes[None])  # (F, 2, 3)
         invariant = jnp.stack([carried[:, 0] @ axes[1], carried[:, 1] @ axes[0]], axis=1)
         mean = jnp.sum(moving[:, None] * invariant, 0) / jnp.maximum(jnp.sum(moving), 1.0)
-        spread = jnp.sum(moving[:, None] * (invariant - mean) ** 2, 0)
-        swap = (n_axes > 1) & (spread[1] < spread[0])
+        spread = jnp.sum(moving[:, None] * (invariant - mean) ** 2, 0) / jnp.maximum(jnp.sum(moving), 1.0)
+        mean_sq = spread
+        # A protocol moves one axis at a time, which keeps both invariants: then the
+        # order is taken so that the limb stays far from the parent-fixed (second)
+        # axis, where the two-axis model has its singularity (p = +-B: beta is lost).
+        significant = jnp.max(mean_sq) > 9.0 * 2.0 * noise**2
+        decisive = significant & (jnp.min(spread) < 0.1 * jnp.max(spread))
+        close = jnp.max(jnp.where(calibration[:, None], jnp.abs(p @ axes.T), 0.0), axis=0)
+        swap = (n_axes > 1) & jnp.where(decisive, spread[1] < spread[0], close[1] > close[0])
         axes = jnp.where(swap, axes[::-1], axes)
         offsets = jnp.where(swap, offsets[::-1], offsets)
-        angles, residual = swing_twist_angles(q, p, valid, axes, n_axes, rest_rotation, rest_direction)
+        angles, residual = swing_twist_angles(
+            q, p, valid, axes, n_axes, rest_rotation, rest_direction, rest_frame, first
+        )
 
         off = jax.vmap(_axes.circle_distance, in_axes=(None, 0, 0), out_axes=1)(p, axes, offsets)
         off = jnp.where(n_axes > 1, jnp.min(off, axis=1), off[:, 0])
@@ -368,7 +591,7 @@ def _angles_stage(
             "extent": extent,
         }
 
-    return jax.vmap(one)(q, samples, movement, centroid, n_axes, axes, offsets)
+    return jax.vmap(one)(q, samples, movement, centroid, n_axes, axes, offsets, calibration, noise)
 
 
 # ------------------------------------------------------------------ results
@@ -435,8 +658,9 @@ class Parameterization:
         (J,) RMS angle of the movement samples from the nearest of their axes' circles.
     hinge_rms
         (J,) RMS angle by which the movement frames' rotations (relative to a
-        reference frame) leave one fixed axis: ~0 for a one-axis joint (the
-        one-or-two-axes test, threshold ``hinge_tolerance_deg``).
+        reference frame), or the child's long-axis swings, leave one fixed
+        axis, whichever is less: ~0 for a one-axis joint (the one-or-two-axes
+        test, threshold ``hinge_tolerance_deg``).
     extent
         (J,) largest angle of any sample from the samples' mean direction.
     exercised
@@ -444,6 +668,17 @@ class Parameterization:
     steps, converged
         (J,) group merges (joining) or EM iterations, and whether EM settled
         (always True for joining and PCA).
+    calibration
+        (F, J) the frames each joint's axes, axis count and movement filter were
+        taken from: the given calibration window, or (``calibration_source``
+        "automatic") the frames where the joint performs a main movement (it
+        turns about one fixed axis; see ``_main_movement_frames``), or every
+        frame when too few such frames exist. Angles are given for every frame.
+    calibration_source
+        "all", "given", "automatic" or "trial" (a separate calibration recording).
+    noise
+        (J,) estimated noise (radians, per rotation component and frame) of the
+        joint's relative rotations, removed in the one-or-two-axes test.
     normalization
         The :class:`~jaxskel.sd06.Normalization` the samples were taken in.
     """
@@ -468,6 +703,9 @@ class Parameterization:
     exercised: np.ndarray
     steps: np.ndarray
     converged: np.ndarray
+    calibration: np.ndarray
+    calibration_source: str
+    noise: np.ndarray
     normalization: Normalization
     settings: Mapping[str, Any]
 
@@ -592,8 +830,18 @@ def parameterize_normalized(
     hinge_tolerance_deg: float = 4.0,
     min_extent_deg: float = 5.0,
     max_em_steps: int = 100,
+    calibration: Any = None,
+    rate: float | None = None,
+    window_s: float = 1.0,
+    purity: float = 0.97,
+    min_calibration_frames: int = 10,
+    _first: np.ndarray | None = None,
 ) -> Parameterization:
-    """Parameterise a normalised motion; see :func:`parameterize` for the options."""
+    """Parameterise a normalised motion; see :func:`parameterize` for the options.
+
+    ``calibration`` None uses the normalisation's calibration window when it has
+    one, else every frame; "auto" chooses each joint's main-movement frames.
+    """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
     if not 0.0 < delta_deg < 90.0:
@@ -607,6 +855,26 @@ def parameterize_normalized(
     if n_frames < 3:
         raise InputError(f"parameterisation needs a motion of several frames, got {n_frames}")
     given = _n_axes_array(n_axes, norm.n_joints)
+    if not 0.5 <= float(purity) < 1.0 or not float(window_s) > 0 or int(min_calibration_frames) < 3:
+        raise InputError(
+            f"purity must be in [0.5, 1), window_s > 0 and min_calibration_frames >= 3; got {purity}, "
+            f"{window_s}, {min_calibration_frames}"
+        )
+    auto = isinstance(calibration, str) and calibration == "auto"
+    cal = None if auto else calibration_mask(calibration, n_frames, rate)
+    if cal is None and not auto:
+        cal = np.ones(n_frames, bool)
+        if norm.calibration is not None and not norm.calibration.all():
+            cal = np.asarray(norm.calibration)
+    if not auto and not cal[norm.default_frame]:
+        raise InputError(
+            f"the default pose (frame {norm.default_frame}) lies outside the calibration window; normalise "
+            "with the same calibration= (parameterize does)"
+        )
+    window = round(window_s * rate) if rate else 30
+    window = max(3, window | 1)
+    first = np.zeros(n_frames, bool) if _first is None else np.asarray(_first, bool).copy()
+    first[0] = True
     max_groups = min(int(max_groups), bucket_size(n_frames))
     size = bucket_size(n_frames)
     limb = np.concatenate([norm.limb_rotations, np.repeat(norm.limb_rotations[-1:], size - n_frames, axis=0)])
@@ -617,6 +885,10 @@ def parameterize_normalized(
         "min_prominence": float(min_prominence),
         "low_speed_fraction": float(low_speed_fraction),
         "hinge_tolerance": math.radians(hinge_tolerance_deg),
+        "auto": auto,
+        "window": window,
+        "purity": float(purity),
+        "min_calibration": int(min_calibration_frames),
     }
     axes_options = {
         "method": method,
@@ -625,11 +897,24 @@ def parameterize_normalized(
         "max_groups": max_groups,
         "max_em_steps": int(max_em_steps),
     }
-    filtered = _filter_stage(
-        jnp.asarray(limb), jnp.asarray(norm.edges), jnp.asarray(main), jnp.asarray(given), valid, **filter_options
+    pad_false = np.zeros(size - n_frames, bool)
+    cal_frames = np.ones(n_frames, bool) if auto else cal
+    filtered = _program_cache.call(
+        _filter_stage,
+        jnp.asarray(limb),
+        jnp.asarray(norm.edges),
+        jnp.asarray(main),
+        jnp.asarray(given),
+        valid,
+        jnp.asarray(np.concatenate([cal_frames, pad_false])),
+        jnp.asarray(norm.default_frame),
+        **filter_options,
     )
-    extracted = _axes_stage(filtered["samples"], filtered["movement"], filtered["n_axes"], **axes_options)
-    posed = _angles_stage(
+    extracted = _program_cache.call(
+        _axes_stage, filtered["samples"], filtered["movement"], filtered["n_axes"], **axes_options
+    )
+    posed = _program_cache.call(
+        _angles_stage,
         filtered["q"],
         filtered["samples"],
         filtered["movement"],
@@ -638,10 +923,14 @@ def parameterize_normalized(
         filtered["n_axes"],
         extracted["axes"],
         extracted["offsets"],
+        jnp.asarray(norm.default_frame),
+        jnp.asarray(np.concatenate([first, pad_false])),
+        filtered["calibration"],
+        filtered["noise"],
     )
     out = {k: np.asarray(v) for k, v in {**filtered, **extracted, **posed}.items() if k != "q"}
     # Per-frame outputs are joint-major inside the stages; frames first outside.
-    for key in ("samples", "speed", "movement", "angles", "residual"):
+    for key in ("samples", "speed", "movement", "angles", "residual", "calibration"):
         out[key] = np.swapaxes(out[key], 0, 1)[:n_frames]
     if not out["converged"].all():
         warnings.warn(
@@ -681,6 +970,9 @@ def parameterize_normalized(
         exercised=exercised,
         steps=out["steps"].astype(int),
         converged=out["converged"].astype(bool),
+        calibration=out["calibration"].astype(bool),
+        calibration_source="automatic" if auto else ("all" if calibration is None and cal.all() else "given"),
+        noise=out["noise"],
         normalization=norm,
         settings={
             **filter_options,
@@ -688,6 +980,60 @@ def parameterize_normalized(
             "n_axes": given.tolist(),
             "min_extent_deg": float(min_extent_deg),
         },
+    )
+
+
+def _is_motion(obj: Any) -> bool:
+    return getattr(obj, "joint_positions", None) is not None and getattr(obj, "rotations", None) is not None
+
+
+def _sliced(obj: Any, n_total: int, keep: slice, **changes: Any) -> Any:
+    """A copy of a result dataclass with every per-frame array (leading axis ``n_total``) cut to ``keep``."""
+    out = dict(changes)
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if field.name not in out and isinstance(value, np.ndarray) and value.ndim and value.shape[0] == n_total:
+            out[field.name] = value[keep]
+    return dataclasses.replace(obj, **out)
+
+
+def _with_calibration_trial(
+    calibration: Any, motion_arrays: tuple, skeleton_arrays: dict, up_axis: Any, options: dict, method: str, n_axes: Any
+) -> Parameterization:
+    """Axes and default pose from a separate calibration recording, angles for the motion.
+
+    The two recordings (same skeleton) are parameterised as two takes of one
+    motion: the calibration take alone gives the default pose, the axes and
+    the rest pose; the motion's take starts its circle-intersection walk from
+    the rest pose again. The result holds the motion's frames only; its
+    ``rest_frame`` and ``normalization.default_frame`` are -1 (the rest pose
+    lies in the calibration recording).
+    """
+    joints, rotations, translations = motion_arrays
+    cal_t = getattr(calibration, "segment_translations", None)
+    if (cal_t is None) != (translations is None):
+        raise InputError("the calibration motion and the motion must both have segment_translations, or neither")
+    n_cal, n_mot = np.asarray(calibration.joint_positions).shape[0], np.asarray(joints).shape[0]
+    try:
+        cat = [np.concatenate([np.asarray(a), np.asarray(b)]) for a, b in (
+            (calibration.joint_positions, joints), (calibration.rotations, rotations))]
+        cat_t = None if translations is None else np.concatenate([np.asarray(cal_t), np.asarray(translations)])
+    except ValueError as err:
+        raise InputError(f"the calibration motion does not match the motion's skeleton: {err}") from None
+    mask = np.arange(n_cal + n_mot) < n_cal
+    norm = normalize_arrays(
+        cat[0], skeleton_arrays["edges"], cat[1], root=skeleton_arrays["root"], up_axis=up_axis,
+        segment_translations=cat_t, calibration=mask,
+    )
+    first = np.zeros(n_cal + n_mot, bool)
+    first[n_cal] = True
+    options = {k: v for k, v in options.items() if k != "rate"}
+    param = parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=mask, _first=first, **options)
+    keep = slice(n_cal, None)
+    n = n_cal + n_mot
+    norm = _sliced(param.normalization, n, keep, default_frame=-1)
+    return _sliced(
+        param, n, keep, normalization=norm, rest_frame=np.full_like(param.rest_frame, -1), calibration_source="trial"
     )
 
 
@@ -700,6 +1046,7 @@ def parameterize(
     up_axis: Any = "z",
     method: str = "joining",
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
+    calibration: Any = None,
     **options: Any,
 ) -> Parameterization:
     """Joint axes, rest positions and angles of a fitted motion (Sar Dessai et al. 2006, §4).
@@ -709,27 +1056,52 @@ def parameterize(
     skeleton, motion
         Duck-typed: ``skeleton.edges`` (J, 2), ``skeleton.root``; ``motion.joint_positions``
         (F, J, 3), ``motion.rotations`` (F, S, 4) (w, x, y, z), optionally
-        ``motion.segment_translations``. The motion should contain a calibration
-        phase in which every joint performs its main movements one at a time.
+        ``motion.segment_translations`` and ``motion.rate``. The motion (or the
+        calibration recording) should contain a calibration phase: the default
+        pose, then every joint's main movements one at a time.
     normalization
-        From :func:`~jaxskel.sd06.normalize` (computed with ``up_axis`` when None).
+        From :func:`~jaxskel.sd06.normalize` (computed with ``up_axis`` and
+        ``calibration`` when None).
     method
         "joining" (the paper's direction joining), or the baselines "pca" / "em".
     n_axes
         Movement axes per joint: None (decide from the data), 1 or 2 for all, a
         sequence per joint or a mapping joint -> 1/2 (0 = decide).
+    calibration
+        Which frames define the default pose, the axes and the axis count:
+        None (every frame), "auto" (each joint's main-movement frames, recorded
+        in :attr:`Parameterization.calibration`), a ``slice`` or ``(start, stop)``
+        of frames, ``(t0, t1)`` seconds (floats; uses ``motion.rate`` or
+        ``rate=``), a boolean mask per frame, or a separate calibration
+        recording of the same skeleton (an object like ``motion``). Angles are
+        computed for every frame of ``motion``.
     **options
         ``delta_deg`` (15, direction similarity), ``cell`` (0.05, stratification
         chord on the unit sphere), ``max_groups`` (32, largest groups clustered), ``n_bins`` (100, speed
         histogram), ``min_prominence`` (0.05 of the tallest bar), ``low_speed_fraction``
         (0.2), ``hinge_tolerance_deg`` (4, one axis when the movement frames' relative
-        rotations stay this close to one axis), ``min_extent_deg`` (5, warn below), ``max_em_steps`` (100).
+        rotations, noise removed, stay this close to one axis), ``min_extent_deg`` (5,
+        warn below), ``max_em_steps`` (100), ``rate`` (frames per second, default
+        ``motion.rate``), ``window_s`` (1, window of the main-movement detector),
+        ``purity`` (0.97, share of a window's rotation about one axis),
+        ``min_calibration_frames`` (10, fewer automatic frames: use all).
     """
+    options.setdefault("rate", getattr(motion, "rate", None))
+    if _is_motion(calibration):
+        if normalization is not None:
+            raise InputError("with a calibration recording, let parameterize normalise (normalization=None)")
+        for obj, names in ((skeleton, ("edges", "root")), (motion, ("joint_positions", "rotations"))):
+            missing = [n for n in names if getattr(obj, n, None) is None]
+            if missing:
+                raise InputError(f"{type(obj).__name__} has no {', '.join(missing)}")
+        arrays = (motion.joint_positions, motion.rotations, getattr(motion, "segment_translations", None))
+        skel = {"edges": skeleton.edges, "root": int(skeleton.root)}
+        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
     if normalization is None:
-        normalization = normalize(skeleton, motion, up_axis=up_axis)
+        normalization = normalize(skeleton, motion, up_axis=up_axis, calibration=calibration)
     elif not isinstance(normalization, Normalization):
         raise InputError(f"normalization must be a jaxskel.sd06.Normalization, got {type(normalization).__name__}")
-    return parameterize_normalized(normalization, method=method, n_axes=n_axes, **options)
+    return parameterize_normalized(normalization, method=method, n_axes=n_axes, calibration=calibration, **options)
 
 
 @float64_scope
@@ -743,13 +1115,24 @@ def parameterize_arrays(
     method: str = "joining",
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
     segment_translations: Float[Any, "F S 3"] | None = None,
+    calibration: Any = None,
     **options: Any,
 ) -> Parameterization:
-    """:func:`parameterize` from arrays (normalises first with :func:`~jaxskel.sd06._normalize.normalize_arrays`)."""
+    """:func:`parameterize` from arrays (normalises first with :func:`~jaxskel.sd06._normalize.normalize_arrays`).
+
+    ``calibration`` as in :func:`parameterize`; a separate calibration recording
+    is given as an object with ``joint_positions``, ``rotations`` (and
+    ``segment_translations`` when the motion has them).
+    """
+    if _is_motion(calibration):
+        skel = {"edges": edges, "root": root}
+        arrays = (joint_positions, rotations, segment_translations)
+        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
     norm = normalize_arrays(
-        joint_positions, edges, rotations, root=root, up_axis=up_axis, segment_translations=segment_translations
+        joint_positions, edges, rotations, root=root, up_axis=up_axis, segment_translations=segment_translations,
+        calibration=calibration, rate=options.get("rate"),
     )
-    return parameterize_normalized(norm, method=method, n_axes=n_axes, **options)
+    return parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=calibration, **options)
 
 
 def write_parameters(group: Any, parameterization: Parameterization) -> None:
@@ -761,7 +1144,9 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
     ``rest_rotation`` (J, 4) quaternion, ``angles`` (F, J, 3) radians (axis 0, axis 1, twist),
     ``movement`` (F, J) bool, ``speed`` (F, J), ``speed_threshold`` (J,),
     ``residual`` (F, J) radians, ``axis_rms`` (J,), ``exercised`` (J,), ``steps`` (J,),
-    ``converged`` (J,). Attributes: ``method`` and the settings.
+    ``converged`` (J,), ``calibration`` (F, J) bool (the frames each joint's axes
+    came from), ``noise`` (J,) radians. Attributes: ``method``,
+    ``calibration_source`` and the settings.
     """
     from ..io import put as _put
 
@@ -781,9 +1166,12 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
         "exercised",
         "steps",
         "converged",
+        "calibration",
+        "noise",
     ):
         _put(group, name, np.asarray(getattr(p, name)))
     group.attrs["method"] = p.method
+    group.attrs["calibration_source"] = p.calibration_source
     group.attrs["angle_units"] = "rad"
     for key, value in p.settings.items():
         group.attrs[key] = value if not isinstance(value, list) else np.asarray(value)
