@@ -128,6 +128,17 @@ def _parser() -> argparse.ArgumentParser:
                         "(pin joints at hinges), the markers; Y up; mass and inertia are placeholders")
         sp.add_argument("--parameterize", action="store_true",
                         help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
+        sd06 = sp.add_argument_group("--parameterize: the calibration (without one, axes and the default pose come "
+                                     "from every frame)")
+        sd06.add_argument("--calibration", type=_calibration_window, default=None, metavar="START:END",
+                          help="the frames the axes and the default pose come from: frames (0:420) or seconds, "
+                          "written with a decimal point (0.0:14.0); angles are given for every frame")
+        sd06.add_argument("--calibration-trial", type=Path, default=None, metavar="FILE",
+                          help="a separate calibration recording of the subject (default pose, then each joint's "
+                          "movements), posed on the fitted skeleton: axes and default pose come from it")
+        sd06.add_argument("--facing", choices=UP_AXES_CHOICES, default=None, metavar="AXIS",
+                          help="the lab axis the subject faces in the default pose (x, y, z, -x, ...; write "
+                          "--facing=-x), where the body itself (feet, knees, walking) does not tell front from back")
         sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
         sp.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
@@ -191,6 +202,29 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("file", type=Path)
     load_options(info)
     return p
+
+
+#: the axes ``--facing`` takes
+UP_AXES_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
+
+
+def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float]:
+    """``--calibration START:END``: frames (whole numbers) or seconds (with a decimal point)."""
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        if "." in text:
+            start, stop = float(parts[0]), float(parts[1])
+        else:
+            start, stop = int(parts[0]), int(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--calibration takes START:END, frames (0:420) or seconds with a decimal point (0.0:14.0); got {text!r}"
+        ) from None
+    if not 0 <= start < stop:
+        raise argparse.ArgumentTypeError(f"--calibration {text}: START must be >= 0 and below END")
+    return start, stop
 
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
@@ -336,6 +370,15 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     quiet = getattr(args, "quiet", False)
     options = options_from_args(args)
     osim = getattr(args, "osim", None)
+    window, calibration_trial = getattr(args, "calibration", None), getattr(args, "calibration_trial", None)
+    given = [flag for flag, value in (("--calibration", window), ("--calibration-trial", calibration_trial),
+                                      ("--facing", getattr(args, "facing", None))) if value is not None]
+    if given and not args.parameterize:
+        raise jaxskel.InputError(f"{', '.join(given)} set(s) up --parameterize; add --parameterize")
+    if window is not None and calibration_trial is not None:
+        raise jaxskel.InputError("give --calibration or --calibration-trial, not both")
+    if calibration_trial is not None and not calibration_trial.is_file():
+        raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: no such recording")
     _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc, "--osim": osim},
                    args.overwrite)
     if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
@@ -363,8 +406,17 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
             raise jaxskel.InputError("--parameterize needs the rigid skeleton and IK; drop --no-rigid")
         from .sd06 import normalize, parameterize, write_normalized, write_parameters
 
-        norm = normalize(result.skeleton, result.motion, up_axis=_up(result.trial.up_axis))
-        params = parameterize(result.skeleton, result.motion, norm)
+        up = _up(result.trial.up_axis)
+        if calibration_trial is not None:  # posed on the fitted skeleton, as jaxskel track poses a take
+            tracked = jaxskel.track(result.skeleton, jaxskel.load(calibration_trial, **_load_kwargs(calibration_trial, args)))
+            if tracked.failed:
+                raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: {tracked[0].error}")
+            params = parameterize(result.skeleton, result.motion, up_axis=up, calibration=tracked[0].result.motion,
+                                  facing=args.facing)
+            norm = params.normalization
+        else:
+            norm = normalize(result.skeleton, result.motion, up_axis=up, calibration=window, facing=args.facing)
+            params = parameterize(result.skeleton, result.motion, norm, calibration=window)
         extra_groups = {
             "normalized": lambda g: write_normalized(g, norm),
             "parameters": lambda g: write_parameters(g, params),

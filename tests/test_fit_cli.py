@@ -374,18 +374,49 @@ def test_console_script_version():
     assert out.returncode == 0 and out.stdout.startswith("jaxskel ")
 
 
-def test_cli_parameterize_writes_normalized_and_parameters(tmp_path):
-    trial, _ = synth.simulate(synth.full_body(seed=1), duration=10.0, seed=1, noise=0.001)
+def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch, capsys):
+    body = synth.full_body(seed=1)
+    trial, _ = synth.simulate(body, duration=10.0, seed=1, noise=0.001)
     src = tmp_path / "body.c3d"
     trial.save(src)
     out = tmp_path / "body.h5"
-    assert main(["fit", str(src), "-o", str(out), "--parameterize", "--quiet"]) == 0
+    fitted = []
+    fit = jaxskel.fit_skeleton
+
+    def fit_once(*args, **kwargs):  # one fit serves every command below (the flags act after it)
+        if not fitted:
+            fitted.append(fit(*args, **kwargs))
+        return fitted[0]
+
+    monkeypatch.setattr(jaxskel, "fit_skeleton", fit_once)
+    assert main(["fit", str(src), "-o", str(out), "--parameterize", "--calibration", "0:600", "--quiet"]) == 0
     back = jaxskel.load_result(out)
     n_segments = len(back.segments.names)
     assert back.normalized.limb_frames.shape == (trial.n_frames, n_segments, 3, 3)
-    assert 0 <= int(back.normalized.default_frame) < trial.n_frames
+    assert 0 <= int(back.normalized.default_frame) < 600  # inside the window
     assert back.parameters.angles.shape[0] == trial.n_frames
     assert np.isfinite(back.parameters.axes).any()
+    assert back.parameters.attrs["calibration_source"] == "given"
+    calibrated = np.asarray(back.parameters.calibration)
+    assert calibrated[:600].all() and not calibrated[600:].any()
+    # a separate calibration recording, posed on the fitted skeleton; the subject's facing given
+    cal, _ = synth.simulate(body, duration=4.0, seed=2, noise=0.001)
+    cal_file = tmp_path / "cal.c3d"
+    cal.save(cal_file)
+    out2 = tmp_path / "body2.h5"
+    assert main(["fit", str(src), "-o", str(out2), "--parameterize", "--calibration-trial", str(cal_file),
+                 "--facing=-y", "--quiet"]) == 0
+    back = jaxskel.load_result(out2)
+    assert back.parameters.attrs["calibration_source"] == "trial" and back.parameters.angles.shape[0] == trial.n_frames
+    assert back.normalized.attrs["handedness"] == "facing"
+    # refused before the fit: a setting of --parameterize without it, both calibrations, a bad window
+    for extra, text in ((["--calibration", "0:10"], "add --parameterize"),
+                        (["--parameterize", "--calibration", "0:10", "--calibration-trial", str(cal_file)], "not both")):
+        assert main(["fit", str(src), "-o", str(tmp_path / "x.h5"), *extra, "--quiet"]) == 2
+        assert text in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["fit", str(src), "-o", str(tmp_path / "x.h5"), "--parameterize", "--calibration", "10:5"])
+    assert not (tmp_path / "x.h5").exists()
 
 
 def test_no_output_is_ever_written_over_an_input(linkage_trial, tmp_path, capsys):

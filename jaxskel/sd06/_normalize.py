@@ -723,7 +723,8 @@ def normalize_arrays(
         keep :data:`DEFAULT_POSE_WEIGHTS`).
     facing
         Optional world direction the subject faces in the default pose (axis name
-        or 3-vector); by default the front/back sign comes from the joint order.
+        or 3-vector); by default the front/back sign comes from the body itself
+        (feet, knees, walking direction: the module docstring), never from the joint order.
     segment_translations
         Optional (F, S, 3) segment origins; with them the result also knows each
         limb origin in segment coordinates (for marker reconstruction).

@@ -86,6 +86,7 @@ from ._normalize import (
     freeze_fields,
     normalize,
     normalize_arrays,
+    skeleton_leaf_axes,
     tree_arrays,
 )
 
@@ -998,7 +999,8 @@ def _sliced(obj: Any, n_total: int, keep: slice, **changes: Any) -> Any:
 
 
 def _with_calibration_trial(
-    calibration: Any, motion_arrays: tuple, skeleton_arrays: dict, up_axis: Any, options: dict, method: str, n_axes: Any
+    calibration: Any, motion_arrays: tuple, skeleton_arrays: dict, up_axis: Any, options: dict, method: str, n_axes: Any,
+    facing: Any = None,
 ) -> Parameterization:
     """Axes and default pose from a separate calibration recording, angles for the motion.
 
@@ -1023,7 +1025,7 @@ def _with_calibration_trial(
     mask = np.arange(n_cal + n_mot) < n_cal
     norm = normalize_arrays(
         cat[0], skeleton_arrays["edges"], cat[1], root=skeleton_arrays["root"], up_axis=up_axis,
-        segment_translations=cat_t, calibration=mask,
+        segment_translations=cat_t, calibration=mask, facing=facing, leaf_axes=skeleton_arrays.get("leaf_axes"),
     )
     first = np.zeros(n_cal + n_mot, bool)
     first[n_cal] = True
@@ -1047,6 +1049,7 @@ def parameterize(
     method: str = "joining",
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
     calibration: Any = None,
+    facing: Any = None,
     **options: Any,
 ) -> Parameterization:
     """Joint axes, rest positions and angles of a fitted motion (Sar Dessai et al. 2006, §4).
@@ -1075,6 +1078,10 @@ def parameterize(
         ``rate=``), a boolean mask per frame, or a separate calibration
         recording of the same skeleton (an object like ``motion``). Angles are
         computed for every frame of ``motion``.
+    facing
+        The world direction the subject faces in the default pose, for the
+        normalisation parameterize makes (``normalization=None``): see
+        :func:`~jaxskel.sd06.normalize`; by default the body tells front from back.
     **options
         ``delta_deg`` (15, direction similarity), ``cell`` (0.05, stratification
         chord on the unit sphere), ``max_groups`` (32, largest groups clustered), ``n_bins`` (100, speed
@@ -1095,10 +1102,12 @@ def parameterize(
             if missing:
                 raise InputError(f"{type(obj).__name__} has no {', '.join(missing)}")
         arrays = (motion.joint_positions, motion.rotations, getattr(motion, "segment_translations", None))
-        skel = {"edges": skeleton.edges, "root": int(skeleton.root)}
-        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
+        skel = {"edges": skeleton.edges, "root": int(skeleton.root), "leaf_axes": skeleton_leaf_axes(skeleton)}
+        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes, facing)
     if normalization is None:
-        normalization = normalize(skeleton, motion, up_axis=up_axis, calibration=calibration)
+        normalization = normalize(skeleton, motion, up_axis=up_axis, calibration=calibration, facing=facing)
+    elif facing is not None:
+        raise InputError("facing sets up the normalisation: give it to normalize, or pass normalization=None")
     elif not isinstance(normalization, Normalization):
         raise InputError(f"normalization must be a jaxskel.sd06.Normalization, got {type(normalization).__name__}")
     return parameterize_normalized(normalization, method=method, n_axes=n_axes, calibration=calibration, **options)
