@@ -1125,21 +1125,22 @@ def parameterize_arrays(
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
     segment_translations: Float[Any, "F S 3"] | None = None,
     calibration: Any = None,
+    facing: Any = None,
     **options: Any,
 ) -> Parameterization:
     """:func:`parameterize` from arrays (normalises first with :func:`~jaxskel.sd06._normalize.normalize_arrays`).
 
-    ``calibration`` as in :func:`parameterize`; a separate calibration recording
+    ``calibration`` and ``facing`` as in :func:`parameterize`; a separate calibration recording
     is given as an object with ``joint_positions``, ``rotations`` (and
     ``segment_translations`` when the motion has them).
     """
     if _is_motion(calibration):
         skel = {"edges": edges, "root": root}
         arrays = (joint_positions, rotations, segment_translations)
-        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes)
+        return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes, facing)
     norm = normalize_arrays(
         joint_positions, edges, rotations, root=root, up_axis=up_axis, segment_translations=segment_translations,
-        calibration=calibration, rate=options.get("rate"),
+        calibration=calibration, rate=options.get("rate"), facing=facing,
     )
     return parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=calibration, **options)
 

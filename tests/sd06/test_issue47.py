@@ -51,7 +51,9 @@ def sweep_recording():
 @pytest.fixture(scope="module")
 def swept():
     rec = sweep_recording()
-    rec.param = _param(rec, calibration=rec.protocol)
+    # the sweep bends the knees both ways and has no feet or walking: nothing in the body tells
+    # front from back, so the subject's facing (the pelvis' +x at the start) is given
+    rec.param = _param(rec, calibration=rec.protocol, facing=rec.rot[0, BODY.root][:, 0])
     return rec
 
 
