@@ -1,5 +1,8 @@
 """Figures of the parameterisation (Sar Dessai et al. 2006, Figs. 2 and 4): joint spheres, speeds, angles.
 
+:func:`plot_joint_angles` is the clinical-report view of the angles: one panel per
+joint against seconds, or against % of a cycle (mean +- 1 SD over gait cycles).
+
 Every function takes a :class:`~jaxskel.sd06.Parameterization`, returns a
 :class:`matplotlib.figure.Figure` (built without pyplot, so no GUI backend or
 global state is involved) and, given ``path``, also saves it there.
@@ -10,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -18,7 +22,7 @@ from matplotlib.figure import Figure
 from .._errors import InputError
 from .._math.rotation import axis_angle_to_matrix_np
 
-__all__ = ["plot_joint_spheres", "plot_speed_histograms", "plot_angles"]
+__all__ = ["plot_joint_spheres", "plot_speed_histograms", "plot_angles", "plot_joint_angles"]
 
 _AXIS_COLOURS = ("tab:red", "tab:blue")
 
@@ -141,3 +145,181 @@ def plot_angles(
     panels[0].legend(fontsize=8, ncols=3, loc="upper right")
     panels[-1].set_xlabel("seconds" if rate else "frame")
     return _save(fig, path)
+
+
+#: Samples per cycle in :func:`plot_joint_angles` with ``cycle=``: 0, 1, ..., 100 % of the cycle.
+CYCLE_POINTS = 101
+
+
+def _angle_joints(param: Any, joints: Any, names: Sequence[str] | None) -> list[int]:
+    """Joint indices from indices or (with ``names``) names; InputError for anything unknown."""
+    n = param.n_joints
+    if joints is None:
+        return list(range(n))
+    items = [joints] if isinstance(joints, (str, int, np.integer)) else list(joints)
+    if not items:
+        raise InputError(f"joints is empty; give joint indices in 0..{n - 1} or joint names, or None for all")
+    chosen = []
+    for item in items:
+        if isinstance(item, str):
+            if names is None or item not in names:
+                known = "no names= were given" if names is None else f"known: {', '.join(names)}"
+                raise InputError(f"unknown joint {item!r} ({known})")
+            chosen.append(list(names).index(item))
+        elif isinstance(item, (int, np.integer)) and not isinstance(item, (bool, np.bool_)) and 0 <= item < n:
+            chosen.append(int(item))
+        else:
+            raise InputError(f"unknown joint {item!r}: joints are indices in 0..{n - 1} or names from names=")
+    return chosen
+
+
+def _cycle_starts(cycle: Any, n_frames: int) -> np.ndarray:
+    """``cycle`` as (K + 1,) float frame positions: finite, strictly increasing, in [0, F - 1]."""
+    try:
+        starts = np.asarray(cycle, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"cycle must be an array of cycle-start frames (e.g. heel strikes), got {cycle!r}") from None
+    if starts.ndim != 1 or starts.size < 2:
+        raise InputError(
+            f"cycle must be a 1-D array of at least 2 cycle-start frames (K + 1 starts bound K cycles), "
+            f"got shape {starts.shape}"
+        )
+    if not np.all(np.isfinite(starts)) or np.any(np.diff(starts) <= 0):
+        raise InputError(f"cycle start frames must be finite and strictly increasing, got {starts.tolist()}")
+    if starts[0] < 0 or starts[-1] > n_frames - 1:
+        raise InputError(
+            f"cycle start frames must lie in 0..{n_frames - 1} (the recording's frames), got "
+            f"{starts.min():g}..{starts.max():g}"
+        )
+    return starts
+
+
+def _cycle_curves(values: np.ndarray, starts: np.ndarray, n_points: int = CYCLE_POINTS) -> np.ndarray:
+    """(K, n_points, ...) ``values`` (F, ...) resampled over each of the K cycles ``starts[k]..starts[k + 1]``.
+
+    Point ``i`` of cycle ``k`` is ``values`` linearly interpolated at frame position
+    ``starts[k] + (starts[k + 1] - starts[k]) * i / (n_points - 1)`` (so 0 % and 100 %
+    are the cycle's bounding events).
+    """
+    frames = np.arange(values.shape[0])
+    flat = values.reshape(values.shape[0], -1)
+    u = np.linspace(0.0, 1.0, n_points)
+    out = []
+    for s0, s1 in pairwise(starts):
+        at = s0 + (s1 - s0) * u
+        out.append(np.stack([np.interp(at, frames, flat[:, c]) for c in range(flat.shape[1])], axis=1))
+    return np.stack(out).reshape(len(out), n_points, *values.shape[1:])
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) frame ranges (stop exclusive) where ``mask`` is True."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
+
+
+def plot_joint_angles(
+    parameterization: Any,
+    *,
+    joints: Any = None,
+    names: Sequence[str] | None = None,
+    rate: float | None = None,
+    cycle: Any = None,
+    path: str | os.PathLike[str] | None = None,
+    overwrite: bool = False,
+) -> Figure:
+    """Joint angles per joint, as clinical gait reports show them: one small panel per joint.
+
+    Each panel shows, in degrees, the angle about the joint's first movement axis
+    ("axis 1", ``angles[:, j, 0]``), about its second axis ("axis 2", two-axis joints
+    only, ``angles[:, j, 1]``) and the twist about the limb's long axis ("twist",
+    ``angles[:, j, 2]``); the axes are the extracted ones (no anatomical
+    flexion/abduction names: SD06 finds axes, not their anatomical meaning).
+
+    * ``cycle`` None: against time, ``t_f = f / rate`` seconds (frame index f when
+      ``rate`` is None, since a parameterisation does not record its rate). Frames a
+      joint's axes were taken from (``parameterization.calibration[:, j]``) are
+      shaded, each frame covering ``t_f +- 1 / (2 rate)``, unless they are all frames.
+    * ``cycle`` (K + 1,) increasing frame positions (e.g. one foot's heel strikes;
+      fractional frames allowed, all in ``0..F - 1``) bounding K cycles: against %
+      cycle. Cycle k is resampled at ``p = 0, 1, ..., 100`` % by linear interpolation
+      at frame ``s_k + (s_{k+1} - s_k) p / 100``; each curve is the mean over the K
+      cycles, with a band of +- 1 sample SD (``ddof=1``; none for K = 1).
+
+    ``joints``: indices, or names from ``names`` (J names, one per joint, used in the
+    panel titles); default all. Angles are taken as stored (continuous branches), so
+    the means are plain means. Returns the :class:`~matplotlib.figure.Figure`; with
+    ``path`` it is also saved there atomically (suffix: an image type matplotlib
+    writes; an existing file only with ``overwrite``), all checked before drawing.
+    Raises :class:`~jaxskel.InputError` for unknown joints, bad names, rate, cycle or path.
+    """
+    param = parameterization
+    n_frames, n_joints = param.n_frames, param.n_joints
+    if names is not None:
+        if isinstance(names, str) or len(names) != n_joints or not all(isinstance(x, str) for x in names):
+            raise InputError(f"names must be {n_joints} strings, one per joint, got {names!r}")
+        names = list(names)
+    chosen = _angle_joints(param, joints, names)
+    if rate is not None and not (isinstance(rate, (int, float, np.number)) and math.isfinite(rate) and rate > 0):
+        raise InputError(f"rate must be a positive number of frames per second, got {rate!r}")
+    starts = None if cycle is None else _cycle_starts(cycle, n_frames)
+    fmt = None
+    if path is not None:
+        if not isinstance(path, (str, os.PathLike)):
+            raise InputError(f"path must be a file name (str or path), got {type(path).__name__}")
+        from ..io import check_output, image_format
+
+        fmt = image_format(check_output(path, "image"))
+        if os.path.exists(path) and not overwrite:
+            raise InputError(f"{path} already exists; pass overwrite=True to replace it or choose another name")
+
+    degrees = np.degrees(np.asarray(param.angles, dtype=float))
+    fig, panels = _grid(len(chosen), 3.0, 2.3)
+    if starts is None:
+        x = np.arange(n_frames) / rate if rate else np.arange(n_frames, dtype=float)
+        half = 0.5 / rate if rate else 0.5
+        xlabel = "seconds" if rate else "frame"
+    else:
+        x = np.linspace(0.0, 100.0, CYCLE_POINTS)
+        curves = _cycle_curves(degrees, starts)  # (K, 101, J, 3)
+        mean = curves.mean(axis=0)
+        sd = curves.std(axis=0, ddof=1) if curves.shape[0] > 1 else None
+        xlabel = "% cycle"
+    series = [(0, "axis 1", _AXIS_COLOURS[0], "-"), (1, "axis 2", _AXIS_COLOURS[1], "-"), (2, "twist", "0.35", "--")]
+    legend: dict[str, Any] = {}
+    for ax, j in zip(panels, chosen, strict=True):
+        for k, label, colour, style in series:
+            if k == 1 and int(param.n_axes[j]) < 2:
+                continue
+            if starts is None:
+                (line,) = ax.plot(x, degrees[:, j, k], color=colour, ls=style, lw=0.9, label=label)
+            else:
+                (line,) = ax.plot(x, mean[:, j, k], color=colour, ls=style, lw=1.1, label=label)
+                if sd is not None:
+                    ax.fill_between(x, mean[:, j, k] - sd[:, j, k], mean[:, j, k] + sd[:, j, k],
+                                    color=colour, alpha=0.18, lw=0)
+            legend.setdefault(label, line)
+        if starts is None:
+            mask = np.asarray(param.calibration[:, j], bool)
+            if mask.any() and not mask.all():
+                for a, b in _runs(mask):
+                    span = ax.axvspan(x[a] - half, x[b - 1] + half, color="tab:green", alpha=0.1, lw=0,
+                                      label="calibration")
+                    legend.setdefault("calibration", span)
+            ax.set_xlim(x[0], x[-1])
+        else:
+            ax.set_xlim(0.0, 100.0)
+        ax.axhline(0.0, color="0.7", lw=0.5)
+        ax.set_title(_label(j, names), fontsize=9)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel("degrees", fontsize=8)
+        ax.tick_params(labelsize=7)
+    order = [k for k in ("axis 1", "axis 2", "twist", "calibration") if k in legend]
+    fig.legend([legend[k] for k in order], order, loc="outside upper right", ncols=len(order), fontsize=8)
+    what = "joint angles" if starts is None else f"joint angles, mean +- 1 SD over {len(starts) - 1} cycle(s)"
+    fig.suptitle(f"{what} ({param.method})", fontsize=10)
+    if path is not None:
+        from ..io import atomic_output
+
+        with atomic_output(path, overwrite) as tmp:
+            fig.savefig(tmp, dpi=110, format=fmt)
+    return fig
