@@ -159,6 +159,7 @@ def test_a_count_that_does_not_help_does_not_end_the_split_search():
     assert fitted == {frozenset(map(int, e)) for e in truth.edges}
 
 
+@pytest.mark.extended  # 1-3 min on 2 cores; tests/pipeline/test_split_refit.py covers the split refit by default
 def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     """A random 12-segment tree whose joint 9-10 moves its markers little against each
     other (largest distance std 7 mm, 5x the 1.4 mm noise floor but under the 9 mm
@@ -400,7 +401,7 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     calibrated = np.asarray(back.parameters.calibration)
     assert calibrated[:600].all() and not calibrated[600:].any()
     # a separate calibration recording, posed on the fitted skeleton; the subject's facing given
-    cal, _ = synth.simulate(body, duration=4.0, seed=2, noise=0.001)
+    cal, _ = synth.simulate(body, duration=2.0, seed=2, noise=0.001)  # with the take: the take's frame bucket
     cal_file = tmp_path / "cal.c3d"
     cal.save(cal_file)
     out2 = tmp_path / "body2.h5"
