@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from .._errors import InputError
 from .._math.rotation import axis_angle_to_matrix_np
 
-__all__ = ["plot_joint_spheres", "plot_speed_histograms", "plot_angles", "plot_joint_angles"]
+__all__ = ["plot_angles", "plot_joint_angles", "plot_joint_spheres", "plot_speed_histograms"]
 
 _AXIS_COLOURS = ("tab:red", "tab:blue")
 
