@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import ConvergenceWarning, InputError, JaxskelError, TrackingWarning
+from .._math.frames import cut_frames
 from .._runtime.precision import float64_scope
 from ..clean import clean, lowpass_markers
 from ..io import Trial, check_load_arguments, check_output, refuse_input
@@ -299,13 +300,7 @@ def _solve_group(preps: Sequence[_Prepared], skeleton: Skeleton) -> tuple[list[A
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # said per trial (_finish)
         motion = inverse_kinematics(skeleton, (x, np.isfinite(x).all(axis=-1)), trial_bounds=bounds, slots=slots)
-    frames = motion.n_frames
-    cuts = []
-    for lo, hi in bounds:
-        cuts.append(dataclasses.replace(motion, **{
-            f.name: getattr(motion, f.name)[lo:hi] for f in dataclasses.fields(motion)
-            if isinstance(getattr(motion, f.name), np.ndarray) and getattr(motion, f.name).shape[:1] == (frames,)
-        }))  # fmt: skip
+    cuts = [cut_frames(motion, motion.n_frames, slice(lo, hi)) for lo, hi in bounds]
     return cuts, time.perf_counter() - t0
 
 

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from .._errors import InputError
+from .._math.frames import cut_frames
 from ..clean import CleaningReport
 from ..io import Trial
 from ..joints import Topology
@@ -238,12 +239,7 @@ class SkeletonResult:
             if isinstance(trial, bool) or not isinstance(trial, (int, np.integer)) or not 0 <= trial < n:
                 raise InputError(f"trial must be an index 0..{n - 1} of the {n} fitted trial(s), got {trial!r}")
             start, stop = self.trial_bounds[int(trial)]
-            frames = motion.n_frames
-            motion = dataclasses.replace(motion, **{
-                f.name: getattr(motion, f.name)[start:stop]
-                for f in dataclasses.fields(motion)
-                if isinstance(getattr(motion, f.name), np.ndarray) and getattr(motion, f.name).shape[:1] == (frames,)
-            })  # fmt: skip
+            motion = cut_frames(motion, motion.n_frames, slice(start, stop))
         from ..result._bvh import export_bvh
 
         return export_bvh(

@@ -66,6 +66,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConvergenceWarning, DegenerateMotionWarning, InputError
+from .._math.frames import cut_frames
 from .._math.padding import bucket_size
 from .._math.rotation import (
     axis_angle_to_quat,
@@ -988,16 +989,6 @@ def _is_motion(obj: Any) -> bool:
     return getattr(obj, "joint_positions", None) is not None and getattr(obj, "rotations", None) is not None
 
 
-def _sliced(obj: Any, n_total: int, keep: slice, **changes: Any) -> Any:
-    """A copy of a result dataclass with every per-frame array (leading axis ``n_total``) cut to ``keep``."""
-    out = dict(changes)
-    for field in dataclasses.fields(obj):
-        value = getattr(obj, field.name)
-        if field.name not in out and isinstance(value, np.ndarray) and value.ndim and value.shape[0] == n_total:
-            out[field.name] = value[keep]
-    return dataclasses.replace(obj, **out)
-
-
 def _with_calibration_trial(
     calibration: Any, motion_arrays: tuple, skeleton_arrays: dict, up_axis: Any, options: dict, method: str, n_axes: Any,
     facing: Any = None,
@@ -1033,8 +1024,8 @@ def _with_calibration_trial(
     param = parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=mask, _first=first, **options)
     keep = slice(n_cal, None)
     n = n_cal + n_mot
-    norm = _sliced(param.normalization, n, keep, default_frame=-1)
-    return _sliced(
+    norm = cut_frames(param.normalization, n, keep, default_frame=-1)
+    return cut_frames(
         param, n, keep, normalization=norm, rest_frame=np.full_like(param.rest_frame, -1), calibration_source="trial"
     )
 
