@@ -31,7 +31,7 @@ from typing import Any
 from ._runtime.compile_cache import enable_compile_cache
 from ._runtime.own_process import own_process
 from .pipeline._options import Choice, FitOptions, SettingInfo
-from .pipeline._track import TRACK_GROUPS
+from .pipeline._track import TRACK_GROUPS, track_settings
 
 __all__ = ["main"]
 
@@ -487,8 +487,7 @@ def _track(args: argparse.Namespace) -> int:
 
     if args.batch_size < 1:
         raise jaxskel.InputError(f"--batch-size must be at least 1, got {args.batch_size}")
-    settings = {k: v for k, v in options_from_args(args).as_flat().items()
-                if k in {info.flat for g, _, info, _ in FitOptions.settings() if g in TRACK_GROUPS}}
+    settings = track_settings(options_from_args(args))
     with _dask_cluster(args) as scheduler:
         batch = jaxskel.track(
             args.skeleton, list(args.trials), args.outdir, bvh=args.bvh, trc=args.trc, overwrite=args.overwrite,

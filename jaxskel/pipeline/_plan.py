@@ -37,7 +37,7 @@ from ..relabel import LabelMapping, confirm_merges, merge_labels, needs_merging
 from ..result import SkeletonResult, nonrigid_text
 from ..segment import Segmentation, combine_trials, left_out_markers, segment_markers, still_trials, white_noise
 from ..segment import segment_names as default_names
-from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, solver_shape
+from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, measured_rms, solver_shape
 from ._options import FitOptions
 from ._split_refit import MAX_SPLITS, crowded_nonrigid, keep_split, replay
 from ._warnings import (
@@ -430,10 +430,7 @@ class StagePlan:
         motion = inverse_kinematics(skeleton, low.trial, slots=slots)
         # the residual is reported against the markers as measured, not as filtered
         column = work.marker_index(motion.marker_labels)
-        raw = np.asarray(work.positions)[:, column]
-        miss = np.sum((motion.fitted_markers - raw) ** 2, axis=-1)
-        seen = np.isfinite(miss)
-        marker_rms = np.sqrt(np.where(seen, miss, 0.0).sum(1) / np.maximum(seen.sum(1), 1))
+        marker_rms, _ = measured_rms(motion.fitted_markers, np.asarray(work.positions)[:, column])
         return dataclasses.replace(motion, marker_rms=marker_rms, lowpass_hz=low.cutoff_hz[column])
 
     def _confirm_merges(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:

@@ -43,14 +43,15 @@ from .._runtime.precision import float64_scope
 from ..clean import clean, lowpass_markers
 from ..io import Trial, check_load_arguments, check_output, refuse_input
 from ..result import TrackedTrial, load_skeleton
-from ..skeleton import Skeleton, inverse_kinematics, solver_shape
+from ..skeleton import Skeleton, inverse_kinematics, measured_rms, segment_members, solver_shape
 from ._batch import BatchResult
 from ._local import Item, TrialOutcome, failed
 from ._options import FitOptions
 from ._plan import check_units
 from ._trial_warnings import Caught, emit
 
-__all__ = ["TRACK_GROUPS", "MarkerMatch", "match_markers", "posable_segments", "posed_segments", "track"]
+__all__ = ["TRACK_GROUPS", "MarkerMatch", "match_markers", "posable_segments", "posed_segments", "track",
+           "track_settings"]
 
 #: The settings groups of :class:`FitOptions` that tracking uses (the others are the fit's).
 TRACK_GROUPS = ("clean", "motion")
@@ -120,15 +121,6 @@ def match_markers(skeleton_labels: Sequence[str], trial_labels: Sequence[str]) -
 
 
 # ------------------------------------------------------------------ posing
-def _members(skeleton: Skeleton) -> np.ndarray:
-    """(M, S) True where marker m is on segment s (markers off the skeleton on none)."""
-    seg = np.asarray(skeleton.marker_segment)
-    on = (seg >= 0) & np.isfinite(np.asarray(skeleton.marker_offsets)).all(axis=1)
-    member = np.zeros((len(seg), skeleton.n_segments), bool)
-    member[np.flatnonzero(on), seg[on]] = True
-    return member
-
-
 def posable_segments(skeleton: Skeleton, visible: np.ndarray) -> np.ndarray:
     """(F, S): the frames' visible markers (``visible`` (F, M)) fix the segment's pose.
 
@@ -136,7 +128,7 @@ def posable_segments(skeleton: Skeleton, visible: np.ndarray) -> np.ndarray:
     itself poses it from), or when at least one is seen and, with the joints it shares
     with its neighbours, they make three points.
     """
-    member = _members(skeleton)
+    member = segment_members(skeleton)
     n_markers = member.sum(axis=0)
     degree = np.bincount(np.asarray(skeleton.edges).ravel(), minlength=skeleton.n_segments)
     seen = np.asarray(visible, bool).astype(np.int64) @ member.astype(np.int64)
@@ -244,13 +236,11 @@ def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: str, 
     """The trial's TrackedTrial from its cut of the group's motion, and its warnings."""
     visible = np.isfinite(prep.raw).all(axis=-1)
     posed = posed_segments(posable_segments(skeleton, visible))
-    member = _members(skeleton)
+    member = segment_members(skeleton)
     marker_posed = (posed.astype(np.int64) @ member.T.astype(np.int64)) > 0  # (F, M)
     fitted = np.where(marker_posed[..., None], motion.fitted_markers, np.nan)
-    miss = np.sum((fitted - prep.raw) ** 2, axis=-1)
-    seen = np.isfinite(miss)
-    rms = np.sqrt(np.where(seen, miss, 0.0).sum(1) / np.maximum(seen.sum(1), 1))
-    rms = np.where(seen.any(axis=1), rms, np.nan)
+    rms, n_seen = measured_rms(fitted, prep.raw)
+    rms = np.where(n_seen > 0, rms, np.nan)
     motion = dataclasses.replace(motion, fitted_markers=fitted, marker_rms=rms, lowpass_hz=prep.lowpass_hz,
                                  rate=prep.trial.rate, converged=bool((motion.result == 0).all()))
     tracked = TrackedTrial(
@@ -321,6 +311,11 @@ def _skeleton_of(skeleton: Any) -> tuple[Skeleton, str]:
     )
 
 
+def track_settings(options: FitOptions) -> dict[str, Any]:
+    """The settings of ``options`` that tracking uses (:data:`TRACK_GROUPS`), by flat name."""
+    return {info.flat: options.get(info.flat) for group, _, info, _ in FitOptions.settings() if group in TRACK_GROUPS}
+
+
 def track_options(options: FitOptions | None, settings: dict[str, Any]) -> FitOptions:
     """The options of a tracking run: ``options`` (or the defaults) with ``settings``
     (flat names) changed; only the cleaning and IK settings (:data:`TRACK_GROUPS`) apply."""
@@ -332,8 +327,7 @@ def track_options(options: FitOptions | None, settings: dict[str, Any]) -> FitOp
     if foreign:
         raise InputError(
             f"{', '.join(foreign)}: fit setting(s); tracking uses the saved skeleton and only the cleaning and IK "
-            "settings (" + ", ".join(info.flat for g, _, info, _ in FitOptions.settings() if g in TRACK_GROUPS)
-            + ")"
+            "settings (" + ", ".join(track_settings(options or FitOptions())) + ")"
         )
     options = options.replace(**settings)
     if not options.motion.enabled:
@@ -475,7 +469,6 @@ def track(
         if keep_results:
             raise InputError("keep_results=True needs in-process tracking (no scheduler): results stay on the workers")
     keep = (scheduler is None) if keep_results is None else bool(keep_results)
-    flat = {info.flat: options.get(info.flat) for group, _, info, _ in FitOptions.settings() if group in TRACK_GROUPS}
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     bar = None
@@ -497,7 +490,7 @@ def track(
         if scheduler is not None:
             _track_distributed(items, skel, calibration, options, exports, overwrite, batch_size, scheduler, done)
         else:
-            _track_local(items, skel, calibration, options, flat, exports, overwrite, batch_size, keep, done)
+            _track_local(items, skel, calibration, options, exports, overwrite, batch_size, keep, done)
     finally:
         if bar is not None:
             bar.close()
@@ -505,9 +498,10 @@ def track(
 
 
 def _track_local(items: list[Item], skeleton: Skeleton, calibration: str, options: FitOptions,
-                 settings: dict[str, Any], exports: Sequence[str], overwrite: bool, batch_size: int, keep: bool,
+                 exports: Sequence[str], overwrite: bool, batch_size: int, keep: bool,
                  done: Callable[[Item, TrialOutcome], None]) -> None:
     """Track ``items`` in this process: prepare each, pose them in groups, finish and write each."""
+    settings = track_settings(options)
     group: list[_Prepared] = []
     started: dict[int, float] = {}
 
@@ -582,7 +576,6 @@ def _track_group(state: dict[str, Any], calibration: str, packed: list[tuple[int
     skeleton = Skeleton(**state)
     items = [Item(index, name, "", (_unpack(value),), Path(output), reading)
              for index, name, value, output, reading in packed]
-    flat = {info.flat: options.get(info.flat) for group, _, info, _ in FitOptions.settings() if group in TRACK_GROUPS}
     rows: list[tuple] = []
 
     def on_done(item: Item, outcome: TrialOutcome) -> None:
@@ -590,7 +583,7 @@ def _track_group(state: dict[str, Any], calibration: str, packed: list[tuple[int
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # said again on the client, naming the trial
-        _track_local(items, skeleton, calibration, options, flat, exports, overwrite, batch_size, False, on_done)
+        _track_local(items, skeleton, calibration, options, exports, overwrite, batch_size, False, on_done)
     return rows
 
 

@@ -9,7 +9,10 @@ from ._rigid_fit import Skeleton, fit_rigid
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
-from ._ik import DEFAULT_PRIOR_WEIGHT, FrameSolution, IKModel, ik_initial_guess, kinematic_chain, tree_levels
+from ._ik import (
+    DEFAULT_PRIOR_WEIGHT, FrameSolution, IKModel, ik_initial_guess, kinematic_chain, measured_rms, segment_members,
+    tree_levels,
+)
 from ._ik_batch import solver_shape
 from ._rigid_fit import SOLVED_JOINT_WEIGHT
 

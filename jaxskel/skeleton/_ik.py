@@ -751,6 +751,26 @@ class Motion:
         )
 
 
+def segment_members(skeleton: SkeletonLike, n_rows: int | None = None) -> np.ndarray:
+    """(n_rows, S) True where marker m sits on segment s (markers off the skeleton, and
+    padding rows beyond its M markers, on none); ``n_rows`` defaults to M."""
+    seg = np.asarray(skeleton.marker_segment)
+    member = np.zeros((len(seg) if n_rows is None else n_rows, skeleton.n_segments), bool)
+    on = np.flatnonzero((seg >= 0) & np.isfinite(np.asarray(skeleton.marker_offsets)).all(axis=1))
+    member[on, seg[on]] = True
+    return member
+
+
+def measured_rms(fitted: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rms (F,), n (F,))``: per frame, the RMS distance between the ``fitted`` markers (F, M, 3)
+    and the markers as ``measured`` (NaN missing) over the ``n`` markers both have; 0 where
+    ``n`` is 0. The residual a motion reports when its IK posed filtered markers."""
+    miss = np.sum((np.asarray(fitted) - np.asarray(measured)) ** 2, axis=-1)
+    seen = np.isfinite(miss)
+    n = seen.sum(1)
+    return np.sqrt(np.where(seen, miss, 0.0).sum(1) / np.maximum(n, 1)), n
+
+
 @jax.jit
 def _gap_prior(
     rel: Float[Array, "T F S 4"], observed: Bool[Array, "T F S"], start: Int[Array, " F"], stop: Int[Array, " F"]
@@ -1000,10 +1020,7 @@ def inverse_kinematics(
         steps[rows] += again["num_steps"]
 
     # Observed: every marker of the segment visible (segments without markers count as seen).
-    seg_of = np.asarray(skeleton.marker_segment)
-    member = np.zeros((m_pad, n_seg), bool)
-    on = np.flatnonzero((seg_of >= 0) & np.isfinite(skeleton.marker_offsets).all(axis=1))
-    member[on, seg_of[on]] = True
+    member = segment_members(skeleton, m_pad)
     observed = ~((~mf)[:, :, None] & member[None]).any(axis=1)  # (n, S)
     if fill_gaps and not observed.all():
         prior2, q_start = _interpolated(
