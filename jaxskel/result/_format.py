@@ -43,10 +43,11 @@ interrupted write never leaves a file that looks complete.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -57,7 +58,10 @@ from .._errors import InputError, SchemaError
 from ..io import atomic_output, check_output, input_sources, put, refuse_input
 from ._skeleton_file import write_skeleton
 
-__all__ = ["SCHEMA_VERSION", "ResultFile", "jsonable", "load_result", "save_result", "write_cleaning", "write_motion"]
+__all__ = [
+    "SCHEMA_VERSION", "ResultFile", "jsonable", "load_result", "open_result", "save_result", "write_cleaning",
+    "write_motion", "write_root_attrs",
+]
 
 SCHEMA_VERSION = 1
 
@@ -78,6 +82,42 @@ def write_motion(g: h5py.Group, motion: Any) -> None:
     ):
         if getattr(motion, src, None) is not None:
             put(g, dst, np.asarray(getattr(motion, src)))
+
+
+def write_root_attrs(f: h5py.File, trial: Any) -> None:
+    """The attributes on ``/`` of every result file, for the recording ``trial``."""
+    from .._version import __version__
+
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.attrs["jaxskel_version"] = __version__
+    f.attrs["source"] = str(trial.source)
+    f.attrs["rate"] = float(trial.rate)
+    f.attrs["units"] = "m"
+    f.attrs["up_axis"] = str(trial.up_axis)
+    f.attrs["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat()
+
+
+@contextlib.contextmanager
+def open_result(path: Path, hint: str = "") -> Iterator[h5py.File]:
+    """``path`` open for reading, after the checks every reader of a result file makes: it
+    exists (:class:`InputError`), is HDF5 and has a ``schema_version`` (:class:`InputError`,
+    ``hint`` ending the message), no newer than this jaxskel reads (:class:`SchemaError`)."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such result file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read as HDF5 ({exc}){hint}") from None
+    with f:
+        if "schema_version" not in f.attrs:
+            raise InputError(f"{path}: not a jaxskel result file (no schema_version attribute){hint}")
+        version = int(f.attrs["schema_version"])
+        if version > SCHEMA_VERSION:
+            raise SchemaError(
+                f"{path}: written with result schema {version}, this jaxskel reads up to "
+                f"{SCHEMA_VERSION}; upgrade jaxskel (pip install -U jaxskel)"
+            )
+        yield f
 
 
 def write_cleaning(c: h5py.Group, rep: Any) -> None:
@@ -106,21 +146,13 @@ def save_result(
     ``extra_groups`` maps a group name (e.g. ``"normalized"``) to a function that
     fills that group; later stages add their output this way.
     """
-    from .._version import __version__
-
     path = check_output(path, "result")  # a folder, not .h5/.hdf5, an unwritable folder
     refuse_input(path, input_sources(result.trial), "the result file")
     seg = result.segmentation
     topo = result.topology
     with atomic_output(path, overwrite) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["jaxskel_version"] = __version__
-            f.attrs["source"] = str(result.trial.source)
-            f.attrs["rate"] = float(result.trial.rate)
-            f.attrs["units"] = "m"
-            f.attrs["up_axis"] = str(result.trial.up_axis)
-            f.attrs["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat()
+            write_root_attrs(f, result.trial)
 
             g = f.create_group("markers")
             put(g, "labels", list(result.input_labels))
@@ -320,18 +352,8 @@ def load_result(path: str | os.PathLike[str]) -> ResultFile:
     :class:`SchemaError` for a file written by a newer, incompatible jaxskel.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such result file")
     try:
-        with h5py.File(path, "r") as f:
-            if "schema_version" not in f.attrs:
-                raise InputError(f"{path}: not a jaxskel result file (no schema_version attribute)")
-            version = int(f.attrs["schema_version"])
-            if version > SCHEMA_VERSION:
-                raise SchemaError(
-                    f"{path}: written with result schema {version}, this jaxskel reads up to "
-                    f"{SCHEMA_VERSION}; upgrade jaxskel (pip install -U jaxskel)"
-                )
+        with open_result(path) as f:
             return _with_segment_names(_read_group(f))
     except OSError as exc:
         raise InputError(f"{path}: cannot read as HDF5 ({exc})") from None

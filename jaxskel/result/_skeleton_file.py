@@ -130,21 +130,8 @@ def load_skeleton(path: str | os.PathLike[str]) -> Any:
     without a rigid skeleton (fitted with ``--no-rigid``), and :class:`SchemaError` for a
     file of a newer jaxskel.
     """
-    from ._format import SCHEMA_VERSION
+    from ._format import open_result
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such result file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read as HDF5 ({exc}); give a result file of jaxskel fit") from None
-    with f:
-        if "schema_version" not in f.attrs:
-            raise InputError(f"{path}: not a jaxskel result file (no schema_version attribute); give the result "
-                             "file of jaxskel fit (-o FILE.h5)")
-        version = int(f.attrs["schema_version"])
-        if version > SCHEMA_VERSION:
-            raise SchemaError(f"{path}: written with result schema {version}, this jaxskel reads up to "
-                              f"{SCHEMA_VERSION}; upgrade jaxskel (pip install -U jaxskel)")
+    with open_result(path, hint="; give the result file of jaxskel fit (-o FILE.h5)") as f:
         return read_skeleton(f, str(path))

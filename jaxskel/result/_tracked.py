@@ -12,7 +12,6 @@ from here too), ``/motion`` (with ``segment_posed``) and ``/diagnostics``.
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import os
 from pathlib import Path
@@ -141,8 +140,7 @@ class TrackedTrial:
 
 def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
     """Write ``tracked`` to ``path`` (``.h5``; never over an input or, without ``overwrite``, a file)."""
-    from .._version import __version__
-    from ._format import SCHEMA_VERSION, jsonable, write_cleaning, write_motion
+    from ._format import jsonable, write_cleaning, write_motion, write_root_attrs
     from ._skeleton_file import write_skeleton
 
     path = check_output(path, "result")
@@ -156,15 +154,9 @@ def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwri
         for lab in tracked.input_labels
     ], dtype=np.int64)
     with atomic_output(path, overwrite) as tmp, h5py.File(tmp, "w") as f:
-        f.attrs["schema_version"] = SCHEMA_VERSION
-        f.attrs["jaxskel_version"] = __version__
+        write_root_attrs(f, trial)
         f.attrs["kind"] = "tracked"
         f.attrs["calibration"] = str(tracked.calibration)
-        f.attrs["source"] = str(trial.source)
-        f.attrs["rate"] = float(trial.rate)
-        f.attrs["units"] = "m"
-        f.attrs["up_axis"] = str(trial.up_axis)
-        f.attrs["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat()
         g = f.create_group("markers")
         put(g, "labels", list(tracked.input_labels))
         put(g, "segment", segment)
