@@ -58,13 +58,14 @@ def _local_rotations(skeleton: Skeleton, rotations: np.ndarray) -> np.ndarray:
     return local
 
 
-def _euler(local: np.ndarray, order: str) -> np.ndarray:
-    """Intrinsic Euler angles (degrees) in ``order`` with ``R = R_o1 R_o2 R_o3``."""
+def euler_angles(local: np.ndarray, order: str, *, degrees: bool = True) -> np.ndarray:
+    """Intrinsic Euler angles (degrees, or radians) in ``order`` with ``R = R_o1 R_o2 R_o3``
+    of the rotation matrices ``local`` (..., 3, 3)."""
     with warnings.catch_warnings():
         # Gimbal lock: scipy picks one of the equivalent solutions, which still
         # reproduces the rotation matrix exactly.
         warnings.simplefilter("ignore", UserWarning)
-        return Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler(order, degrees=True).reshape(
+        return Rotation.from_matrix(local.reshape(-1, 3, 3)).as_euler(order, degrees=degrees).reshape(
             *local.shape[:-2], 3
         )
 
@@ -169,7 +170,7 @@ def export_bvh(
             visit(int(edges[j, 1]))
 
     visit(skeleton.root)
-    angles = _euler(_local_rotations(skeleton, motion.rotations), order)  # (F, S, 3)
+    angles = euler_angles(_local_rotations(skeleton, motion.rotations), order)  # (F, S, 3)
     rot = Rotation.from_quat(motion.rotations[:, skeleton.root], scalar_first=True).as_matrix()
     root_node = motion.root_position + np.einsum("fab,b->fa", rot, node_origin[skeleton.root])
     columns = [root_node * scale] + [angles[:, s] for s in dfs]

@@ -72,6 +72,7 @@ from scipy.spatial.transform import Rotation
 from .._errors import InputError
 from .._version import __version__
 from ..io import atomic_output, check_output, rotation_between_axes
+from ._bvh import euler_angles
 
 if TYPE_CHECKING:
     from ..skeleton import Motion, Skeleton
@@ -158,16 +159,12 @@ def _axis_frame(axis: np.ndarray) -> np.ndarray:
 
 def _xyz(rot: np.ndarray) -> np.ndarray:
     """Body-fixed X-Y-Z Euler angles (radians) of ``rot`` (..., 3, 3): ``R = R_X R_Y R_Z``."""
-    with warnings.catch_warnings():
-        # Gimbal lock: scipy picks one of the equivalent solutions, which still
-        # reproduces the rotation matrix exactly.
-        warnings.simplefilter("ignore", UserWarning)
-        return Rotation.from_matrix(rot).as_euler("XYZ")
+    return euler_angles(rot, "XYZ", degrees=False)
 
 
-def _pin_angle(m: np.ndarray) -> float:
-    """The angle of the turn about Z closest to ``m`` (3, 3): argmax_t trace(R_Z(t)^T m)."""
-    return float(np.arctan2(m[1, 0] - m[0, 1], m[0, 0] + m[1, 1]))
+def _pin_angle(m: np.ndarray) -> np.ndarray:
+    """The angle of the turn about Z closest to ``m`` (..., 3, 3): argmax_t trace(R_Z(t)^T m)."""
+    return np.arctan2(m[..., 1, 0] - m[..., 0, 1], m[..., 0, 0] + m[..., 1, 1])
 
 
 def _hinge_axes(skeleton: Skeleton) -> np.ndarray:
@@ -199,7 +196,7 @@ def _off_axis_turns(skeleton: Skeleton, motion: Motion, axes: np.ndarray) -> np.
             continue
         q = _axis_frame(axes[j])
         m = q.T @ (np.swapaxes(seg[:, p], -1, -2) @ seg[:, c]) @ q  # (F, 3, 3)
-        t = np.arctan2(m[:, 1, 0] - m[:, 0, 1], m[:, 0, 0] + m[:, 1, 1])
+        t = _pin_angle(m)
         about = Rotation.from_rotvec(np.stack([np.zeros_like(t), np.zeros_like(t), t], axis=1)).as_matrix()
         rest = np.swapaxes(about, -1, -2) @ m
         cos = np.clip((np.trace(rest, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
@@ -398,7 +395,7 @@ def export_osim(
         _sub(el, "socket_child_frame", child_frame)
         coords = _sub(el, "coordinates")
         if pin:
-            _coordinate(coords, f"{name}_angle", _pin_angle(basis.T @ relative @ basis), np.pi)
+            _coordinate(coords, f"{name}_angle", float(_pin_angle(basis.T @ relative @ basis)), np.pi)
         else:
             for axis, value in zip("xyz", _xyz(relative)):
                 _coordinate(coords, f"{name}_r{axis}", value, np.pi)
