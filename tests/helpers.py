@@ -226,3 +226,26 @@ def truth_motion(trial, truth):
         marker_labels=trial.labels,
         rate=trial.rate,
     )
+
+
+def opensim_ik_rms(osim, model_path, take, folder) -> np.ndarray:
+    """OpenSim's per-frame marker RMS (m) for ``take``, a Trial already in the model's frame
+    and names, by its InverseKinematicsTool with the model at ``model_path``; files go to ``folder``."""
+    import jaxskel
+
+    trc = jaxskel.save_trial(take, folder / "take.trc")
+    tool = osim.InverseKinematicsTool()
+    tool.setName("take")
+    model = osim.Model(str(model_path))  # the tool does not own it: keep it alive while it runs
+    tool.setModel(model)
+    tool.setMarkerDataFileName(str(trc))
+    tool.setStartTime(float(take.times[0]))
+    tool.setEndTime(float(take.times[-1]))
+    tool.setResultsDir(str(folder))
+    tool.setOutputMotionFileName(str(folder / "take.mot"))
+    tool.set_accuracy(1e-6)
+    assert tool.run()
+    table = osim.TimeSeriesTable(str(folder / "take_ik_marker_errors.sto"))
+    rms = table.getDependentColumn("marker_error_RMS").to_numpy()
+    assert len(rms) == take.n_frames
+    return rms

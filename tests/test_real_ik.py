@@ -18,7 +18,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import REAL
+from helpers import REAL, opensim_ik_rms
 
 import jaxskel
 
@@ -107,26 +107,12 @@ def test_opensim_inverse_kinematics_agrees_on_a_real_recording(tmp_path):
     skeleton, frames = result.skeleton, 240
     model_path = export_osim(skeleton, tmp_path / "subject.osim", motion=result.motion,
                              frame=int(skeleton.diagnostics["rest_frame"]), up_axis=result.trial.up_axis)
-    column = result.trial.marker_index(skeleton.marker_labels)
     take = result.trial.select_markers(list(skeleton.marker_labels))
     take = take.replace(positions=to_opensim_frame(np.asarray(take.positions)[:frames], take.up_axis),
                         labels=opensim_names(take.labels), up_axis="y")
-    trc = jaxskel.save_trial(take, tmp_path / "take.trc")
-    tool = osim.InverseKinematicsTool()
-    tool.setName("take")
-    model = osim.Model(str(model_path))  # the tool does not own it: keep it alive while it runs
-    tool.setModel(model)
-    tool.setMarkerDataFileName(str(trc))
-    tool.setStartTime(float(take.times[0]))
-    tool.setEndTime(float(take.times[-1]))
-    tool.setResultsDir(str(tmp_path))
-    tool.setOutputMotionFileName(str(tmp_path / "take.mot"))
-    tool.set_accuracy(1e-6)
-    assert tool.run()
-    theirs = osim.TimeSeriesTable(str(tmp_path / "take_ik_marker_errors.sto")).getDependentColumn(
-        "marker_error_RMS").to_numpy()
+    theirs = opensim_ik_rms(osim, model_path, take, tmp_path)
     ours = np.asarray(result.motion.marker_rms)[:frames]
-    assert column.shape == (len(skeleton.marker_labels),) and len(theirs) == frames
+    assert len(theirs) == frames
     print(f"\nKneeltoProne01, {frames} frames: OpenSim IK {1e3 * theirs.mean():.2f} mm, jaxskel {1e3 * ours.mean():.2f} mm")
     assert abs(theirs.mean() - ours.mean()) < 0.002
     assert np.median(np.abs(theirs - ours)) < 0.002

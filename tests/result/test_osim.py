@@ -17,7 +17,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from helpers import true_joint_index, truth_motion, truth_skeleton
+from helpers import opensim_ik_rms, true_joint_index, truth_motion, truth_skeleton
 from scipy.spatial.transform import Rotation
 
 import jaxskel
@@ -298,23 +298,8 @@ def test_default_pose_of_a_fitted_motion(osim, fitted, tmp_path):
 
 def _opensim_ik_rms(osim, model_path, trial, tmp_path):
     """OpenSim's per-frame marker RMS for ``trial`` (its markers turned into the OpenSim frame)."""
-    trc = jaxskel.save_trial(trial.replace(positions=to_opensim_frame(trial.positions, trial.up_axis)), tmp_path / "x.trc")
-    times = trial.times
-    ik = osim.InverseKinematicsTool()
-    ik.setName("jaxskel")
-    model = osim.Model(str(model_path))  # the tool does not own it: keep it alive while it runs
-    ik.setModel(model)
-    ik.setMarkerDataFileName(str(trc))
-    ik.setStartTime(float(times[0]))
-    ik.setEndTime(float(times[-1]))
-    ik.setResultsDir(str(tmp_path))
-    ik.setOutputMotionFileName(str(tmp_path / "ik.mot"))
-    ik.set_accuracy(1e-6)
-    assert ik.run()
-    errors = osim.TimeSeriesTable(str(tmp_path / "jaxskel_ik_marker_errors.sto"))
-    rms = errors.getDependentColumn("marker_error_RMS").to_numpy()
-    assert len(rms) == trial.n_frames
-    return rms
+    take = trial.replace(positions=to_opensim_frame(trial.positions, trial.up_axis))
+    return opensim_ik_rms(osim, model_path, take, tmp_path)
 
 
 def test_opensim_inverse_kinematics_agrees_with_jaxskel_on_the_true_skeleton(osim, tmp_path):
@@ -322,7 +307,7 @@ def test_opensim_inverse_kinematics_agrees_with_jaxskel_on_the_true_skeleton(osi
     kinematics of a noisy trial with the exported model leaves the marker error jaxskel's
     inverse kinematics leaves, within 2 mm on average and frame by frame."""
     body = synth.full_body(seed=0)
-    trial, truth = synth.simulate(body, "calibration", duration=2.0, rate=50.0, noise=0.001, seed=4)
+    trial, _ = synth.simulate(body, "calibration", duration=2.0, rate=50.0, noise=0.001, seed=4)
     skeleton, _, _ = _truth_skeleton_and_motion(body, duration=2.0, seed=4)
     motion = jaxskel.skeleton.inverse_kinematics(skeleton, trial)
     model_path = export_osim(skeleton, tmp_path / "truth.osim", motion=motion, frame=0)
