@@ -153,8 +153,7 @@ class _Prepared:
     """A trial ready for the group solve."""
 
     item: Item
-    trial: Trial  # cleaned, in the skeleton's marker order
-    raw: np.ndarray  # (F, M, 3) its positions as measured (NaN missing)
+    trial: Trial  # cleaned, in the skeleton's marker order: its positions as measured (NaN missing)
     filtered: np.ndarray  # (F, M, 3) what the IK poses (NaN missing)
     lowpass_hz: np.ndarray | None
     input_labels: tuple[str, ...]
@@ -206,7 +205,8 @@ def _prepare(item: Item, skeleton: Skeleton, options: FitOptions) -> _Prepared:
         for m, lab in enumerate(source):
             if lab is not None and lab in column:
                 raw[:, m] = trial.positions[:, column[lab]]
-        kept = int(np.isfinite(raw).all(axis=-1).any(axis=0).sum())
+        seen = np.isfinite(raw).all(axis=-1).any(axis=0)  # the skeleton's markers with data
+        kept = int(seen.sum())
         if kept < 3:
             raise InputError(
                 f"{item.name}: after cleaning, {kept} of the skeleton's markers have data ("
@@ -218,8 +218,7 @@ def _prepare(item: Item, skeleton: Skeleton, options: FitOptions) -> _Prepared:
         t2 = time.perf_counter()
         cutoff = options.motion.lowpass
         filtered, lowpass_hz = raw, None
-        seen = np.isfinite(raw).all(axis=-1).any(axis=0)
-        if cutoff is not None and seen.any():
+        if cutoff is not None:
             low = lowpass_markers(ordered.select_markers(np.flatnonzero(seen)), cutoff)
             filtered = raw.copy()
             filtered[:, seen] = low.trial.positions
@@ -228,18 +227,19 @@ def _prepare(item: Item, skeleton: Skeleton, options: FitOptions) -> _Prepared:
         timings["lowpass"] = time.perf_counter() - t2
     caught = list(dict.fromkeys((w.category, str(w.message)) for w in got))
     lost = {lab: dropped[src] for lab, src in zip(labels, source) if src is not None and src in dropped}
-    return _Prepared(item, ordered, raw, filtered, lowpass_hz, loaded, match, lost, report, caught, timings)
+    return _Prepared(item, ordered, filtered, lowpass_hz, loaded, match, lost, report, caught, timings)
 
 
 def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: str, settings: dict[str, Any],
             ik_seconds: float) -> tuple[TrackedTrial, list[Caught]]:
     """The trial's TrackedTrial from its cut of the group's motion, and its warnings."""
-    visible = np.isfinite(prep.raw).all(axis=-1)
+    measured = np.asarray(prep.trial.positions)
+    visible = np.isfinite(measured).all(axis=-1)
     posed = posed_segments(posable_segments(skeleton, visible))
     member = segment_members(skeleton)
     marker_posed = (posed.astype(np.int64) @ member.T.astype(np.int64)) > 0  # (F, M)
     fitted = np.where(marker_posed[..., None], motion.fitted_markers, np.nan)
-    rms, n_seen = measured_rms(fitted, prep.raw)
+    rms, n_seen = measured_rms(fitted, measured)
     rms = np.where(n_seen > 0, rms, np.nan)
     motion = dataclasses.replace(motion, fitted_markers=fitted, marker_rms=rms, lowpass_hz=prep.lowpass_hz,
                                  rate=prep.trial.rate, converged=bool((motion.result == 0).all()))
