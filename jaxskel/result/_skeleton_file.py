@@ -56,7 +56,7 @@ def _text(values: Any) -> tuple[str, ...]:
 
 def read_skeleton(f: h5py.File, where: str = "result file") -> Any:
     """The :class:`Skeleton` stored in an open result file (module docstring)."""
-    from ..skeleton import Skeleton
+    from ..skeleton import Skeleton, longest_bones
 
     if "skeleton" not in f or "marker_offsets" not in f["skeleton"]:
         raise InputError(
@@ -88,9 +88,7 @@ def read_skeleton(f: h5py.File, where: str = "result file") -> Any:
                                   dtype=np.int64)
     segment_lengths = array("segment_lengths")
     if segment_lengths is None:
-        segment_lengths = np.full(n_segments, np.nan)
-        for s, length in zip(bone_segment.tolist(), np.asarray(g["bone_lengths"][()]).tolist()):
-            segment_lengths[s] = np.nanmax([segment_lengths[s], length])
+        segment_lengths = longest_bones(bone_segment, g["bone_lengths"][()], n_segments)
     names = _text(g["segment_names"][()]) if "segment_names" in g else (
         _text(f["segments/names"][()]) if "segments/names" in f else ()
     )

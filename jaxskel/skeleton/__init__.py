@@ -14,6 +14,6 @@ from ._ik import (
     tree_levels,
 )
 from ._ik_batch import solver_shape
-from ._rigid_fit import SOLVED_JOINT_WEIGHT
+from ._rigid_fit import SOLVED_JOINT_WEIGHT, longest_bones
 
 __all__ = ["Motion", "Skeleton", "fit_rigid", "forward_kinematics", "ik_solve", "inverse_kinematics"]

@@ -237,6 +237,14 @@ class Skeleton:
         )
 
 
+def longest_bones(bone_segment: np.ndarray, bone_lengths: np.ndarray, n_segments: int) -> np.ndarray:
+    """(S,) each segment's longest bone (:attr:`Skeleton.segment_lengths`; NaN without one)."""
+    out = np.full(n_segments, np.nan)
+    for s, length in zip(np.asarray(bone_segment).tolist(), np.asarray(bone_lengths).tolist()):
+        out[s] = np.nanmax([out[s], length])
+    return out
+
+
 # ----------------------------------------------------------------- validation
 def validate_tree(edges: np.ndarray, n_segments: int, root: int | None) -> tuple[np.ndarray, int]:
     """Check a parent->child edge list is a tree over ``n_segments``; re-root it if asked.
@@ -990,9 +998,7 @@ def fit_rigid(
     bone_lengths = np.asarray(
         [np.linalg.norm(joint_on(s, a) - joint_on(s, b)) for (a, b), s in zip(bones, bone_seg)]
     )
-    segment_lengths = np.full(n_seg, np.nan)
-    for (a, b), s, length in zip(bones, bone_seg, bone_lengths):
-        segment_lengths[s] = np.nanmax([segment_lengths[s], length])
+    segment_lengths = longest_bones(bone_seg, bone_lengths, n_seg)
 
     steps = sol["num_steps"][keep]
     results = np.where(sol["done"], RESULT_SUCCESSFUL, RESULT_MAX_STEPS)[keep]
