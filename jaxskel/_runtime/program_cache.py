@@ -152,7 +152,8 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
         except Exception as exc:  # noqa: BLE001 - any failure: the plain jitted call
             _log.debug("program %s not exported: %s", name, exc)
             return flat  # the plain jitted call
-    return jax.jit(exported.call)
+    # the function's own compiler options (jaxskel._runtime.compiler_options.jit), if any
+    return jax.jit(exported.call, compiler_options=getattr(fn, "compiler_options", None) or None)
 
 
 def _load(path: Path) -> Any:

@@ -405,6 +405,10 @@ def pca_axes(p: Float[Array, "F 3"], movement: Bool[Array, " F"], *, cell: float
     return _pca_from_reps(reps, weight)
 
 
+#: Distances to the two axis planes (on the unit sphere) closer than this are a tie in EM's E-step.
+EM_TIE = 1e-9
+
+
 def em_axes(
     p: Float[Array, "F 3"],
     movement: Bool[Array, " F"],
@@ -416,17 +420,21 @@ def em_axes(
     """EM refinement of the PCA planes: returns ``(axes, steps, converged)``.
 
     E-step: each representative goes to the axis plane it is closest to
-    (``|a_k . p|``; only the first plane when ``n_axes`` is 1). M-step: each plane
-    is the least-squares plane through the joint centre of its representatives
-    (an empty plane keeps its axis). Stops when no assignment changes.
+    (``|a_k . p|``; only the first plane when ``n_axes`` is 1), and stays with its
+    plane when the two are equally close to within :data:`EM_TIE` (a sample where the
+    circles cross, e.g. the rest pose, would otherwise swap planes on round-off and
+    never let the assignment settle). M-step: each plane is the least-squares plane
+    through the joint centre of its representatives (an empty plane keeps its axis).
+    Stops when no assignment changes.
     """
     reps, weight = _grid_representatives(p, movement, cell)
     axes0 = _pca_from_reps(reps, weight)
 
-    def assign(axes):
+    def assign(axes, labels):
         dist = jnp.abs(reps @ axes.T)
         dist = dist.at[:, 1].set(jnp.where(n_axes > 1, dist[:, 1], jnp.inf))
-        return jnp.argmin(dist, axis=1)
+        tie = jnp.abs(dist[:, 0] - dist[:, 1]) <= EM_TIE
+        return jnp.where(tie, labels, jnp.argmin(dist, axis=1))
 
     def refit(axes, labels):
         def one(k, axis):
@@ -443,11 +451,11 @@ def em_axes(
     def body(state):
         axes, labels, steps, _ = state
         axes = refit(axes, labels)
-        new_labels = assign(axes)
+        new_labels = assign(axes, labels)
         changed = jnp.any((new_labels != labels) & (weight > 0))
         return axes, new_labels, steps + 1, changed
 
-    state = (axes0, assign(axes0), jnp.asarray(0), jnp.asarray(True))
+    state = (axes0, assign(axes0, jnp.zeros(reps.shape[0], jnp.int32)), jnp.asarray(0), jnp.asarray(True))
     axes, _, steps, changed = jax.lax.while_loop(cond, body, state)
     return axes, steps, ~changed
 

@@ -85,6 +85,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
 from .._math.padding import bucket_size
+from .._math.linalg import eigh3
+from .._math.order import kth_smallest, masked_median
 from .._math.rotation import (
     matrix_to_quat,
     quat_conjugate,
@@ -94,6 +96,7 @@ from .._math.rotation import (
     quat_to_matrix,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.compiler_options import jit
 from .._runtime.precision import float64_scope
 
 __all__ = [
@@ -106,6 +109,11 @@ __all__ = [
     "freeze_fields",
     "write_normalized",
 ]
+
+#: Frame-count buckets per octave of the padded SD06 programs: a recording is padded by at
+#: most ~19 % (every stage's cost is proportional to the padded length), at the price of
+#: one compiled program set per bucket.
+FRAME_BUCKETS_PER_OCTAVE = 4
 
 #: Default weights of the default-pose cost terms (see the module docstring).
 #: ``plane`` is larger because ``l_3 / L^2`` is a squared, small quantity
@@ -314,16 +322,11 @@ def default_pose_terms(x: Float[Array, "J 3"]) -> tuple[Float[Array, " 3"], Floa
     """``(plane, ratio, spread)`` of one frame's joints and the covariance eigenvectors (ascending)."""
     centred = x - jnp.mean(x, axis=0)
     cov = centred.T @ centred / x.shape[0]
-    vals, vecs = jnp.linalg.eigh(cov)
+    vals, vecs = eigh3(cov)
     extent = jnp.ptp(centred @ vecs[:, 1:], axis=0)
     ratio = jnp.min(extent) / jnp.maximum(jnp.max(extent), 1e-12)
     spread = jnp.mean(jnp.linalg.norm(centred, axis=-1))
     return jnp.stack([jnp.maximum(vals[0], 0.0), ratio, spread]), vecs
-
-
-def _masked_median(values: Float[Array, " F"], mask: Bool[Array, " F"]) -> Float[Array, ""]:
-    ordered = jnp.sort(jnp.where(mask, values, jnp.inf))
-    return ordered[(jnp.sum(mask) - 1) // 2]
 
 
 def _geometric_median(
@@ -425,7 +428,7 @@ def _front_evidence(
     return jnp.stack([feet_score, knee_score, walk_score]), jnp.stack([feet_ok, knee_ok, walk_ok])
 
 
-@jax.jit
+@jit
 def _normalize_core(
     joints: Float[Array, "F J 3"],
     quats: Float[Array, "F S 4"],
@@ -452,7 +455,7 @@ def _normalize_core(
 ) -> dict[str, Array]:
     """Default-pose frame, body frame, limb frames and constant offsets (module docstring)."""
     terms, vecs = jax.vmap(default_pose_terms)(joints)
-    scale = _masked_median(terms[:, 2], valid)
+    scale = masked_median(terms[:, 2], valid)
     scaled = terms / jnp.stack([scale**2, jnp.ones_like(scale), scale])
     cost = jnp.where(valid, scaled @ weights, jnp.inf)
     origins = jnp.einsum("sj,fjk->fsk", origin_weights, joints)
@@ -471,8 +474,7 @@ def _normalize_core(
     dot = jnp.abs(jnp.sum(rel[1:] * rel[:-1], -1))
     step = jnp.sum(2.0 * jnp.arccos(jnp.clip(dot, 0.0, 1.0)), -1)
     speed = jnp.concatenate([step[:1], step])
-    ordered = jnp.sort(jnp.where(candidate, speed, jnp.inf))
-    slow = candidate & (speed <= ordered[(jnp.sum(candidate) - 1) // 5])
+    slow = candidate & (speed <= kth_smallest(speed, candidate, (jnp.sum(candidate) - 1) // 5))
     proximal_x = joints[:, jnp.maximum(proximal, 0)]
     toward = _unit(proximal_x - origins[:, jnp.maximum(parent, 0)])
     seen = quat_rotate(quat_conjugate(quats[:, leaves]), toward[:, leaves])  # in each leaf's frame
@@ -788,7 +790,7 @@ def normalize_arrays(
             raise InputError(
                 f"segment_translations must be finite, shape {(n_frames, n_joints + 1, 3)}, got {t.shape}"
             )
-    size = bucket_size(n_frames)
+    size = bucket_size(n_frames, steps_per_octave=FRAME_BUCKETS_PER_OCTAVE)
     search = calibration_mask(calibration, n_frames, rate)
     search = np.ones(n_frames, bool) if search is None else search
 

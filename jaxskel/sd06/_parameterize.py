@@ -68,6 +68,8 @@ from jaxtyping import Array, Bool, Float, Int
 from .._errors import ConvergenceWarning, DegenerateMotionWarning, InputError
 from .._math.frames import cut_frames
 from .._math.padding import bucket_size
+from .._math.linalg import eigh3
+from .._math.order import masked_median
 from .._math.rotation import (
     axis_angle_to_quat,
     matrix_to_quat,
@@ -79,9 +81,11 @@ from .._math.rotation import (
     quat_twist_angle,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.compiler_options import jit
 from .._runtime.precision import float64_scope
 from . import _axes
 from ._normalize import (
+    FRAME_BUCKETS_PER_OCTAVE,
     Normalization,
     calibration_mask,
     freeze_fields,
@@ -253,7 +257,7 @@ def _joint_rotations(
     return quat_multiply(quat_multiply(swing, twist), rest_rotation[None])
 
 
-@jax.jit
+@jit
 def pose_from_angles(
     angles: Float[Array, "F J 3"],
     axes: Float[Array, "J 2 3"],
@@ -290,7 +294,7 @@ def pose_from_angles(
     return jnp.swapaxes(rotation, 0, 1), jnp.swapaxes(origin, 0, 1), jnp.swapaxes(joints, 0, 1)
 
 
-@jax.jit
+@jit
 def _segment_poses(
     limb: Float[Array, "F S 4"],
     origins: Float[Array, "F S 3"],
@@ -323,8 +327,7 @@ def _rotation_noise(
     dw = jnp.sum(dwv**2, -1)
     ok = defined[1:] & jnp.concatenate([defined[:1], defined[1:-1]])
     n_ok = jnp.sum(ok)
-    ordered = jnp.sort(jnp.where(ok, dw, jnp.inf))
-    median = ordered[jnp.maximum((n_ok - 1) // 2, 0)]
+    median = masked_median(dw, ok)
     keep = (ok & (dw <= 9.0 * median)).astype(w.dtype)
     cov = jnp.einsum("f,fi,fj->ij", keep, dwv, dwv) / jnp.maximum(jnp.sum(keep), 1.0) / 6.0
     cov = jnp.where(n_ok > 0, cov, 0.0)
@@ -424,7 +427,7 @@ def _main_movement_frames(
     lo, hi = jnp.clip(idx - half, 0, n), jnp.clip(idx + half + 1, 0, n)
     scatter = cum[hi] - cum[lo]
     count = (hi - lo).astype(w.dtype)
-    vals = jnp.maximum(jnp.linalg.eigvalsh(scatter) - (count * noise_var)[:, None], 0.0)
+    vals = jnp.maximum(eigh3(scatter)[0] - (count * noise_var)[:, None], 0.0)
     total = jnp.sum(vals, -1)
     strong = vals[:, 2] > 9.0 * count * noise_var
     pure = vals[:, 2] >= purity * jnp.maximum(total, 1e-300)
@@ -434,8 +437,7 @@ def _main_movement_frames(
 # Three jitted stages, joint-major inside (vmapped over joints); only the middle
 # one depends on the axis-extraction method, so trying another method recompiles
 # only that stage.
-@functools.partial(
-    jax.jit,
+@jit(
     static_argnames=("n_bins", "min_prominence", "low_speed_fraction", "hinge_tolerance", "auto", "window", "purity",
                      "min_calibration"),
 )
@@ -503,7 +505,7 @@ def _filter_stage(
     return jax.vmap(one)(q, main[edges[:, 1]], n_axes_given)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "cell", "delta", "max_groups", "max_em_steps"))
+@jit(static_argnames=("method", "cell", "delta", "max_groups", "max_em_steps"))
 def _axes_stage(
     samples: Float[Array, "J F 3"],
     movement: Bool[Array, "J F"],
@@ -535,7 +537,7 @@ def _axes_stage(
     return jax.vmap(one)(samples, movement, n_axes)
 
 
-@jax.jit
+@jit
 def _angles_stage(
     q: Float[Array, "J F 4"],
     samples: Float[Array, "J F 3"],
@@ -877,8 +879,8 @@ def parameterize_normalized(
     window = max(3, window | 1)
     first = np.zeros(n_frames, bool) if _first is None else np.asarray(_first, bool).copy()
     first[0] = True
-    max_groups = min(int(max_groups), bucket_size(n_frames))
-    size = bucket_size(n_frames)
+    size = bucket_size(n_frames, steps_per_octave=FRAME_BUCKETS_PER_OCTAVE)
+    max_groups = min(int(max_groups), size)
     limb = np.concatenate([norm.limb_rotations, np.repeat(norm.limb_rotations[-1:], size - n_frames, axis=0)])
     main = np.eye(3, dtype=limb.dtype)[norm.main_axis] * norm.main_sign[:, None]
     valid = jnp.asarray(np.arange(size) < n_frames)

@@ -1,0 +1,85 @@
+"""XLA compiler options of jaxskel's own programs, set per program (never through ``XLA_FLAGS``).
+
+XLA:CPU hands some elementwise fusions to YNNPACK. For float64 (every jaxskel
+computation) those fusions run several times slower than XLA's own loops: on the
+SD06 angle stage of a 24,000-frame recording 130 ms against 29 ms, and a whole
+:func:`jaxskel.sd06.parameterize` about 20 % slower (``bench/sd06_speed.py``).
+The option ``xla_cpu_experimental_ynn_fusion_type`` left empty turns them off.
+:func:`jit` passes it as a ``jax.jit`` ``compiler_options`` entry, which applies to
+that program alone; the host's other programs and global flags are left as they
+are. Called inside another jit (its arguments are tracers), a program is a plain
+nested ``jax.jit``: JAX accepts compiler options on the outermost jit only. Other backends ignore the option. A jaxlib that does not know it (older or
+newer releases) gets no options: whether it is known is found out once, by
+compiling a one-element program at the first call of a program built by :func:`jit`
+(not at import, which must not start a backend).
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+__all__ = ["compiler_options", "jit"]
+
+#: The options jaxskel's programs are compiled with, where the running jaxlib knows them.
+OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+@functools.lru_cache(maxsize=1)
+def compiler_options() -> dict[str, str]:
+    """:data:`OPTIONS` if this jaxlib accepts them, else ``{}``."""
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=OPTIONS).lower(np.zeros(1, np.float32)).compile()
+    except Exception:  # noqa: BLE001 - "No such compile option": compile with the defaults
+        return {}
+    return dict(OPTIONS)
+
+
+class _Jitted:
+    """``jax.jit(fn, compiler_options=compiler_options(), **kwargs)``, built at its first use."""
+
+    def __init__(self, fn: Callable, kwargs: dict[str, Any]) -> None:
+        functools.update_wrapper(self, fn)
+        self._fn = fn
+        self._kwargs = kwargs
+        self._jitted: Callable | None = None
+        self._nested: Callable | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def jitted(self) -> Callable:
+        """The ``jax.jit`` function (``lower``, ``trace``, ``eval_shape`` ... are forwarded to it)."""
+        if self._jitted is None:
+            with self._lock:
+                if self._jitted is None:
+                    self._jitted = jax.jit(self._fn, compiler_options=self.compiler_options or None, **self._kwargs)
+        return self._jitted
+
+    @property
+    def compiler_options(self) -> dict[str, str]:
+        return compiler_options()
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((args, kwargs))):
+            # Inside another jit (a caller's, or an export): JAX takes compiler options
+            # from the outermost jit only and refuses them on a nested one.
+            if self._nested is None:
+                self._nested = jax.jit(self._fn, **self._kwargs)
+            return self._nested(*args, **kwargs)
+        return self.jitted(*args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(self.jitted, name)
+
+
+def jit(fn: Callable | None = None, **kwargs: Any) -> Any:
+    """``jax.jit`` with jaxskel's compiler options (module docstring); usable as ``@jit`` or ``@jit(static_argnames=...)``."""
+    if fn is None:
+        return functools.partial(jit, **kwargs)
+    return _Jitted(fn, kwargs)
