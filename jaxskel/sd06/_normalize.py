@@ -84,9 +84,9 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError
-from .._math.padding import bucket_size
 from .._math.linalg import eigh3
 from .._math.order import kth_smallest, masked_median
+from .._math.padding import bucket_size
 from .._math.rotation import (
     matrix_to_quat,
     quat_conjugate,

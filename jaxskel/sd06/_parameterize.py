@@ -67,9 +67,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConvergenceWarning, DegenerateMotionWarning, InputError
 from .._math.frames import cut_frames
-from .._math.padding import bucket_size
 from .._math.linalg import eigh3
 from .._math.order import masked_median
+from .._math.padding import bucket_size
 from .._math.rotation import (
     axis_angle_to_quat,
     matrix_to_quat,
