@@ -54,7 +54,6 @@ origins placed by the normalisation's constant ``joint_offsets``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import warnings
 from collections.abc import Mapping, Sequence
