@@ -60,6 +60,8 @@ _LAZY = {
     "load_result": "result",
     "load_skeleton": "result",
     "export_osim": "result",
+    # a process's compiled programs on disk (opt-in; the jaxskel command turns it on)
+    "enable_compile_cache": "_runtime.compile_cache",
 }
 
 #: The stages, each a namespace of its own: ``jaxskel.segment.segment_markers``, ...

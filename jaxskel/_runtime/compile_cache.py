@@ -60,17 +60,26 @@ def machine_cache_dir(base: Path) -> Path:
     return base / f"{platform.machine() or 'cpu'}-{digest}"
 
 
-def enable_compile_cache() -> None:
-    """Persistent JAX compilation cache, so a second process skips compilation, and the
-    solvers' exported programs (``<cache>-programs``), so it skips their tracing.
+def enable_compile_cache() -> Path | None:
+    """Keep compiled programs on disk, so that a later process skips compiling them.
+
+    Turns on JAX's persistent compilation cache (so a second process skips XLA's
+    compilation) and saves jaxskel's traced solver and SD06 programs beside it
+    (``<cache>-programs``, so it skips their tracing too). The ``jaxskel`` command
+    does this for its own process. A library user calls it once, opting in: it sets
+    JAX's process-wide ``jax_compilation_cache_dir`` (and its size bound and
+    thresholds), which then serves every program of the process, not only
+    jaxskel's; importing jaxskel never does.
 
     Location: a subdirectory per CPU model and jaxlib (:func:`machine_cache_dir`) of
     ``$JAXSKEL_CACHE_DIR`` or ``~/.cache/jaxskel/jax``; set ``JAXSKEL_CACHE_DIR=""`` to
     disable both, ``JAXSKEL_PROGRAM_CACHE=0`` to disable the saved programs alone.
+    Returns the directory of the compiled code, or ``None`` when no cache could be set
+    up (disabled, no ``filelock``, a read-only home or an old jax).
     """
     base = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
     if not base:
-        return
+        return None
     cache = str(machine_cache_dir(Path(base)))
     try:
         # JAX locks cache entries only with filelock and a size bound (its LRU bookkeeping);
@@ -79,7 +88,7 @@ def enable_compile_cache() -> None:
         # what JAX asks for a shared cache). No filelock: no cache.
         import filelock  # noqa: F401
     except ImportError:
-        return
+        return None
     import jax
 
     try:
@@ -93,11 +102,11 @@ def enable_compile_cache() -> None:
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
         jax.config.update("jax_compilation_cache_dir", cache)  # last: only once locked and bounded
     except (OSError, AttributeError):  # read-only home or an old jax: run without the cache
-        return
+        return None
     # The solvers' traced and lowered programs beside it: a new process then skips their
     # tracing too (jaxskel._runtime.program_cache). JAXSKEL_PROGRAM_CACHE=0 keeps only the compiled code.
-    if os.environ.get("JAXSKEL_PROGRAM_CACHE", "1") == "0":
-        return
-    from . import program_cache as _program_cache
+    if os.environ.get("JAXSKEL_PROGRAM_CACHE", "1") != "0":
+        from . import program_cache as _program_cache
 
-    _program_cache.set_directory(cache + "-programs")
+        _program_cache.set_directory(cache + "-programs")
+    return Path(cache)
