@@ -128,14 +128,18 @@ def _parser() -> argparse.ArgumentParser:
                         "(pin joints at hinges), the markers; Y up; mass and inertia are placeholders")
         sp.add_argument("--parameterize", action="store_true",
                         help="normalise the skeleton and extract joint axes/angles (Sar Dessai et al. 2006)")
-        sd06 = sp.add_argument_group("--parameterize: the calibration (without one, axes and the default pose come "
-                                     "from every frame)")
+        sd06 = sp.add_argument_group("--parameterize: the calibration (without one, each joint's axes come from its "
+                                     "main movements, found automatically, and the default pose from every frame)")
         sd06.add_argument("--calibration", type=_calibration_window, default=None, metavar="START:END",
                           help="the frames the axes and the default pose come from: frames (0:420) or seconds, "
-                          "written with a decimal point (0.0:14.0); angles are given for every frame")
+                          "written with a decimal point (0.0:14.0), or 'all' (every frame) or 'auto' (the default: "
+                          "each joint's main movements); angles are given for every frame")
         sd06.add_argument("--calibration-trial", type=Path, default=None, metavar="FILE",
                           help="a separate calibration recording of the subject (default pose, then each joint's "
                           "movements), posed on the fitted skeleton: axes and default pose come from it")
+        sd06.add_argument("--plot-angles", type=Path, default=None, metavar="FILE",
+                          help="write the joint angles (PNG/PDF): a panel per joint, each axis's angle and the twist "
+                          "in degrees against time, the calibration frames shaded")
         sd06.add_argument("--facing", choices=UP_AXES_CHOICES, default=None, metavar="AXIS",
                           help="the lab axis the subject faces in the default pose (x, y, z, -x, ...; write "
                           "--facing=-x), where the body itself (feet, knees, walking) does not tell front from back")
@@ -208,8 +212,10 @@ def _parser() -> argparse.ArgumentParser:
 UP_AXES_CHOICES = ("x", "y", "z", "-x", "-y", "-z")
 
 
-def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float]:
-    """``--calibration START:END``: frames (whole numbers) or seconds (with a decimal point)."""
+def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float] | str:
+    """``--calibration START:END``: frames (whole numbers) or seconds (with a decimal point); or "all" / "auto"."""
+    if text.strip().lower() in ("all", "auto"):
+        return text.strip().lower()
     parts = text.split(":")
     try:
         if len(parts) != 2:
@@ -220,7 +226,8 @@ def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float]:
             start, stop = int(parts[0]), int(parts[1])
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"--calibration takes START:END, frames (0:420) or seconds with a decimal point (0.0:14.0); got {text!r}"
+            f"--calibration takes START:END, frames (0:420) or seconds with a decimal point (0.0:14.0), or 'all' or "
+            f"'auto'; got {text!r}"
         ) from None
     if not 0 <= start < stop:
         raise argparse.ArgumentTypeError(f"--calibration {text}: START must be >= 0 and below END")
@@ -228,7 +235,8 @@ def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float]:
 
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
-FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--bvh": "bvh", "--trc": "trc", "--osim": "osim"}
+FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--plot-angles": "image", "--bvh": "bvh", "--trc": "trc",
+               "--osim": "osim"}
 
 
 def load_options(parser: argparse.ArgumentParser) -> None:
@@ -371,16 +379,18 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     options = options_from_args(args)
     osim = getattr(args, "osim", None)
     window, calibration_trial = getattr(args, "calibration", None), getattr(args, "calibration_trial", None)
+    plot_angles = getattr(args, "plot_angles", None)
     given = [flag for flag, value in (("--calibration", window), ("--calibration-trial", calibration_trial),
-                                      ("--facing", getattr(args, "facing", None))) if value is not None]
+                                      ("--facing", getattr(args, "facing", None)), ("--plot-angles", plot_angles))
+             if value is not None]
     if given and not args.parameterize:
         raise jaxskel.InputError(f"{', '.join(given)} set(s) up --parameterize; add --parameterize")
     if window is not None and calibration_trial is not None:
         raise jaxskel.InputError("give --calibration or --calibration-trial, not both")
     if calibration_trial is not None and not calibration_trial.is_file():
         raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: no such recording")
-    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--bvh": args.bvh, "--trc": args.trc, "--osim": osim},
-                   args.overwrite)
+    _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--plot-angles": plot_angles, "--bvh": args.bvh,
+                            "--trc": args.trc, "--osim": osim}, args.overwrite)
     if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
         asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc),
                                        ("--osim", osim)) if on]
@@ -428,6 +438,17 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 
         plot_summary(result, args.plot, overwrite=args.overwrite)
         written.append(args.plot)
+    if plot_angles is not None:
+        from .plots import plot_joint_angles
+
+        segments = result.skeleton.names()
+        names = [f"{segments[a]}-{segments[b]}" for a, b in params.normalization.edges]
+        figure = plot_joint_angles(params, names=names, rate=result.trial.rate, path=plot_angles,
+                                   overwrite=args.overwrite)
+        import matplotlib.pyplot as plt
+
+        plt.close(figure)
+        written.append(plot_angles)
     if args.bvh is not None:
         if result.motion is None:
             raise jaxskel.InputError("--bvh needs the rigid skeleton and IK; drop --no-rigid")

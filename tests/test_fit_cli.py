@@ -418,6 +418,23 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     with pytest.raises(SystemExit):
         main(["fit", str(src), "-o", str(tmp_path / "x.h5"), "--parameterize", "--calibration", "10:5"])
     assert not (tmp_path / "x.h5").exists()
+    # no window: each joint's main movements, found automatically; --plot-angles draws the angles
+    out3, angles_png = tmp_path / "body3.h5", tmp_path / "angles.png"
+    assert main(["fit", str(src), "-o", str(out3), "--parameterize", "--plot-angles", str(angles_png), "--quiet"]) == 0
+    back = jaxskel.load_result(out3)
+    assert back.parameters.attrs["calibration_source"] == "automatic"
+    assert angles_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # --calibration all: every frame; --plot-angles is checked before the fit, and needs --parameterize
+    out4 = tmp_path / "body4.h5"
+    assert main(["fit", str(src), "-o", str(out4), "--parameterize", "--calibration", "all", "--quiet"]) == 0
+    back = jaxskel.load_result(out4)
+    assert back.parameters.attrs["calibration_source"] == "all" and np.asarray(back.parameters.calibration).all()
+    for extra, text in ((["--parameterize", "--plot-angles", str(angles_png)], "exists; pass --overwrite"),
+                        (["--parameterize", "--plot-angles", str(tmp_path / "angles.h5")], "--plot-angles"),
+                        (["--plot-angles", str(tmp_path / "a2.png")], "add --parameterize")):
+        assert main(["fit", str(src), "-o", str(tmp_path / "y.h5"), *extra, "--quiet"]) == 2
+        assert text in capsys.readouterr().err
+    assert not (tmp_path / "y.h5").exists()
 
 
 def test_no_output_is_ever_written_over_an_input(linkage_trial, tmp_path, capsys):

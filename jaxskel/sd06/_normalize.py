@@ -272,13 +272,15 @@ def up_vector(up_axis: Any) -> np.ndarray:
 
 
 def calibration_mask(calibration: Any, n_frames: int, rate: float | None = None) -> np.ndarray | None:
-    """Frames (F,) bool of a calibration window, or None for "choose automatically".
+    """Frames (F,) bool of a calibration window, or None when none is given.
 
-    ``calibration`` is None or "auto", a ``slice`` of frames, ``(start, stop)`` frame
+    ``calibration`` is None, "auto" or "all" (no window: the default pose is sought
+    in every frame; :func:`~jaxskel.sd06.parameterize` then chooses each joint's
+    main movements, or takes every frame), a ``slice`` of frames, ``(start, stop)`` frame
     indices (integers, stop exclusive; negative counts from the end), ``(t0, t1)``
     seconds (floats; needs ``rate``) or a boolean mask of length F.
     """
-    if calibration is None or (isinstance(calibration, str) and calibration == "auto"):
+    if calibration is None or (isinstance(calibration, str) and calibration in ("auto", "all")):
         return None
     if isinstance(calibration, slice):
         mask = np.zeros(n_frames, bool)
@@ -306,7 +308,8 @@ def calibration_mask(calibration: Any, n_frames: int, rate: float | None = None)
             mask[slice(start, stop)] = True
         else:
             raise InputError(
-                "calibration must be None (automatic), a slice or (start, stop) of frames, (t0, t1) seconds, "
+                "calibration must be None or 'auto' (automatic), 'all' (every frame), a slice or (start, stop) of "
+                "frames, (t0, t1) seconds, "
                 f"a boolean mask per frame or a separate calibration motion; got {calibration!r}"
             )
     if mask.sum() < 3:

@@ -8,8 +8,10 @@ the unit joint sphere.
 
 Calibration: the default pose, the movement filter, the axes and the axis
 count come from the calibration frames only (a given window, a separate
-calibration recording, every frame, or with "auto" each joint's main-movement
-frames); the angles are computed for every frame.
+calibration recording, every frame with "all", or by default each joint's
+main-movement frames, found automatically: windows where the joint turns about
+one fixed axis, on the circle through its default pose, an axis that many
+frames share); the angles are computed for every frame.
 
 Filtering and axes: :mod:`jaxskel.sd06._axes` (movement samples, direction joining /
 PCA / EM). A joint has one axis when the rotations of its movement frames
@@ -403,34 +405,83 @@ def _one_swing_axis_rms(
     return _off_line_rms(scatter, noise_cov)
 
 
+#: How far (along the axis, on the unit sphere: about 6 degrees) a main movement's sample may
+#: leave the circle about its axis through the rest sample.
+MAIN_CIRCLE_TOLERANCE = 0.1
+
+
 def _main_movement_frames(
-    w: Float[Array, "F 3"], movement: Bool[Array, " F"], noise_var: Float[Array, ""], window: int, purity: float
+    w: Float[Array, "F 3"],
+    p: Float[Array, "F 3"],
+    rest: Float[Array, " 3"],
+    movement: Bool[Array, " F"],
+    noise_var: Float[Array, ""],
+    window: int,
+    purity: float,
+    cell: float,
+    min_main: int,
 ) -> Bool[Array, " F"]:
     """Frames inside a main movement: the joint turns about one fixed axis (automatic calibration).
 
-    Around every frame, the scatter ``S = sum w w^T`` of the angular steps over
-    ``window`` frames (prefix sums: one pass) has eigenvalues ``l_1 >= l_2 >= l_3``;
-    noise adds ``n s^2`` to each (n frames in the window), which is removed. A
-    frame belongs to a main movement when the joint moves there (``movement``),
-    the noise-free rotation exceeds the noise (``l_1' > 9 n s^2``, three
-    standard deviations) and one axis explains at least ``purity`` of it,
-    ``l_1' / (l_1' + l_2' + l_3') >= purity``. A calibration protocol (one
-    movement at a time) passes; free movement, where several degrees of
-    freedom change together, mostly does not.
+    The summed angular steps ``r_f = sum_{g <= f} w_g`` are the joint's rotation
+    vector since the first frame where it turns about one fixed axis (``w_g`` all
+    along it: ``r_f = theta_f A``), and the steps' noise telescopes (``w_g`` carries
+    ``e_g - e_{g-1}``), so ``r`` has the noise of one frame, not of a step. Around
+    every frame, the centred scatter ``S = sum (r - rbar)(r - rbar)^T`` over
+    ``window`` frames (prefix sums of ``r`` and ``r r^T``: one pass) has
+    eigenvalues ``l_1 >= l_2 >= l_3``; noise adds about ``n s^2`` to each (n frames),
+    which is removed. A frame belongs to a main movement when the joint moves
+    there (``movement``), the noise-free excursion exceeds the noise
+    (``l_1' > 9 n s^2``, three standard deviations) and one axis explains at least
+    ``purity`` of it, ``l_1' / (l_1' + l_2' + l_3') >= purity``. A calibration
+    protocol (one movement at a time) passes; free movement, where several degrees
+    of freedom change together, mostly does not.
+
+    A main movement starts from the default pose (§4: the calibration movements
+    leave it one axis at a time), so the sample ``p`` stays on the circle about
+    the window's axis ``u`` (the eigenvector of ``l_1``) through the rest sample:
+    ``|u . (p - p_rest)| <=`` :data:`MAIN_CIRCLE_TOLERANCE`. Free movement that turns
+    about one of the joint's axes from another posture (a small circle elsewhere)
+    is left out: its samples would pull the axis planes. And a short stretch of
+    free movement can turn about a mixture of the axes that drifts from stretch to
+    stretch, while a main movement keeps its axis: a frame is kept only when its
+    axis is shared, to within a grid cell of chord ``cell`` on the sphere of axes,
+    by at least ``min_main`` such frames of the recording (counts per cell of
+    ``+-u``, on two grids half a cell apart, the larger count taken).
     """
     n = w.shape[0]
-    outer = jnp.einsum("fi,fj->fij", w, w)
-    cum = jnp.concatenate([jnp.zeros((1, 3, 3), w.dtype), jnp.cumsum(outer, axis=0)])
+    r = jnp.cumsum(w, axis=0)
+    outer = jnp.einsum("fi,fj->fij", r, r)
+    cum_r = jnp.concatenate([jnp.zeros((1, 3), w.dtype), jnp.cumsum(r, axis=0)])
+    cum_rr = jnp.concatenate([jnp.zeros((1, 3, 3), w.dtype), jnp.cumsum(outer, axis=0)])
     half = window // 2
     idx = jnp.arange(n)
     lo, hi = jnp.clip(idx - half, 0, n), jnp.clip(idx + half + 1, 0, n)
-    scatter = cum[hi] - cum[lo]
     count = (hi - lo).astype(w.dtype)
-    vals = jnp.maximum(eigh3(scatter)[0] - (count * noise_var)[:, None], 0.0)
+    total_r = cum_r[hi] - cum_r[lo]
+    scatter = cum_rr[hi] - cum_rr[lo] - jnp.einsum("fi,fj->fij", total_r, total_r) / count[:, None, None]
+    vals, vecs = eigh3(scatter)
+    vals = jnp.maximum(vals - (count * noise_var)[:, None], 0.0)
     total = jnp.sum(vals, -1)
     strong = vals[:, 2] > 9.0 * count * noise_var
-    pure = vals[:, 2] >= purity * jnp.maximum(total, 1e-300)
-    return movement & strong & pure & (total > 0)
+    pure = movement & strong & (vals[:, 2] >= purity * jnp.maximum(total, 1e-300)) & (total > 0)
+    axis = vecs[:, :, 2]
+    # A main movement starts from the default pose: the sample stays on the circle
+    # about the window's axis through the rest sample.
+    pure = pure & (jnp.abs(jnp.sum(axis * (p - rest), -1)) <= MAIN_CIRCLE_TOLERANCE)
+    side = int(math.ceil(2.0 / cell)) + 2
+    weight = pure.astype(w.dtype)
+
+    def shared(offset):
+        def key(u):
+            c = jnp.clip(jnp.floor((u + 1.0) / cell + offset).astype(jnp.int32), 0, side - 1)
+            return (c[:, 0] * side + c[:, 1]) * side + c[:, 2]
+
+        counts = jax.ops.segment_sum(weight, key(axis), num_segments=side**3)
+        counts = counts + jax.ops.segment_sum(weight, key(-axis), num_segments=side**3)
+        return counts[key(axis)]
+
+    return pure & (jnp.maximum(shared(0.0), shared(0.5)) >= min_main)
 
 
 # Three jitted stages, joint-major inside (vmapped over joints); only the middle
@@ -438,7 +489,7 @@ def _main_movement_frames(
 # only that stage.
 @jit(
     static_argnames=("n_bins", "min_prominence", "low_speed_fraction", "hinge_tolerance", "auto", "window", "purity",
-                     "min_calibration"),
+                     "min_calibration", "cell", "min_main"),
 )
 def _filter_stage(
     limb: Float[Array, "F S 4"],
@@ -457,6 +508,8 @@ def _filter_stage(
     window: int,
     purity: float,
     min_calibration: int,
+    cell: float,
+    min_main: int,
 ) -> dict[str, Array]:
     """Relative rotations, samples, calibration frames, movement filter (§4.1) and axes per joint.
 
@@ -477,7 +530,8 @@ def _filter_stage(
         )
         moving = defined & (speed > threshold)
         if auto:
-            found = _main_movement_frames(w, moving, noise_var, window, purity) & in_cal
+            found = _main_movement_frames(w, p, p[rest_frame], moving, noise_var, window, purity, cell, min_main)
+            found = found & in_cal
             in_cal = jnp.where(jnp.sum(found) >= min_calibration, found, in_cal)
         movement = moving & in_cal
         weight = (valid & in_cal).astype(p.dtype)
@@ -674,9 +728,11 @@ class Parameterization:
     calibration
         (F, J) the frames each joint's axes, axis count and movement filter were
         taken from: the given calibration window, or (``calibration_source``
-        "automatic") the frames where the joint performs a main movement (it
-        turns about one fixed axis; see ``_main_movement_frames``), or every
-        frame when too few such frames exist. Angles are given for every frame.
+        "automatic", the default) the frames where the joint performs a main
+        movement (it turns about one fixed axis, starting from the default pose,
+        an axis many frames share; see ``_main_movement_frames``), or every frame
+        when fewer than ``min_calibration_frames`` such frames exist. Angles are
+        given for every frame.
     calibration_source
         "all", "given", "automatic" or "trial" (a separate calibration recording).
     noise
@@ -837,13 +893,14 @@ def parameterize_normalized(
     rate: float | None = None,
     window_s: float = 1.0,
     purity: float = 0.97,
+    main_s: float = 1.0,
     min_calibration_frames: int = 10,
     _first: np.ndarray | None = None,
 ) -> Parameterization:
     """Parameterise a normalised motion; see :func:`parameterize` for the options.
 
     ``calibration`` None uses the normalisation's calibration window when it has
-    one, else every frame; "auto" chooses each joint's main-movement frames.
+    one, else chooses each joint's main-movement frames ("auto"); "all" takes every frame.
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {METHODS}, got {method!r}")
@@ -863,12 +920,11 @@ def parameterize_normalized(
             f"purity must be in [0.5, 1), window_s > 0 and min_calibration_frames >= 3; got {purity}, "
             f"{window_s}, {min_calibration_frames}"
         )
-    auto = isinstance(calibration, str) and calibration == "auto"
-    cal = None if auto else calibration_mask(calibration, n_frames, rate)
-    if cal is None and not auto:
-        cal = np.ones(n_frames, bool)
-        if norm.calibration is not None and not norm.calibration.all():
-            cal = np.asarray(norm.calibration)
+    if calibration is None and norm.calibration is not None and not norm.calibration.all():
+        calibration = norm.calibration  # the normalisation's window
+    every = isinstance(calibration, str) and calibration == "all"
+    auto = calibration is None or (isinstance(calibration, str) and calibration == "auto")
+    cal = None if auto else np.ones(n_frames, bool) if every else calibration_mask(calibration, n_frames, rate)
     if not auto and not cal[norm.default_frame]:
         raise InputError(
             f"the default pose (frame {norm.default_frame}) lies outside the calibration window; normalise "
@@ -892,6 +948,8 @@ def parameterize_normalized(
         "window": window,
         "purity": float(purity),
         "min_calibration": int(min_calibration_frames),
+        "cell": float(cell),
+        "min_main": max(3, round(main_s * rate) if rate else 30),
     }
     axes_options = {
         "method": method,
@@ -974,7 +1032,7 @@ def parameterize_normalized(
         steps=out["steps"].astype(int),
         converged=out["converged"].astype(bool),
         calibration=out["calibration"].astype(bool),
-        calibration_source="automatic" if auto else ("all" if calibration is None and cal.all() else "given"),
+        calibration_source="automatic" if auto else ("all" if every else "given"),
         noise=out["noise"],
         normalization=norm,
         settings={
@@ -1064,8 +1122,10 @@ def parameterize(
         sequence per joint or a mapping joint -> 1/2 (0 = decide).
     calibration
         Which frames define the default pose, the axes and the axis count:
-        None (every frame), "auto" (each joint's main-movement frames, recorded
-        in :attr:`Parameterization.calibration`), a ``slice`` or ``(start, stop)``
+        None or "auto" (the default: each joint's main-movement frames, found as
+        described in :func:`_main_movement_frames` and recorded in
+        :attr:`Parameterization.calibration`; the default pose is sought in every
+        frame), "all" (every frame), a ``slice`` or ``(start, stop)``
         of frames, ``(t0, t1)`` seconds (floats; uses ``motion.rate`` or
         ``rate=``), a boolean mask per frame, or a separate calibration
         recording of the same skeleton (an object like ``motion``). Angles are
@@ -1083,6 +1143,7 @@ def parameterize(
         warn below), ``max_em_steps`` (100), ``rate`` (frames per second, default
         ``motion.rate``), ``window_s`` (1, window of the main-movement detector),
         ``purity`` (0.97, share of a window's rotation about one axis),
+        ``main_s`` (1, seconds of frames that must share a main movement's axis),
         ``min_calibration_frames`` (10, fewer automatic frames: use all).
     """
     options.setdefault("rate", getattr(motion, "rate", None))

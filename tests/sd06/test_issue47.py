@@ -116,10 +116,51 @@ def test_calibration_window_gives_every_joint_its_axes_and_twist(session):
     np.testing.assert_allclose(param.angles[param.normalization.default_frame], 0.0, atol=1e-9)
 
 
-def test_without_a_window_free_movement_spoils_the_axes(session):
-    """The same recording with every frame as calibration: free movement pulls the axes away."""
-    c = compare(_param(session), session, BODY)
-    assert c.axis_err.max() > 10.0
+def test_every_frame_as_calibration_spoils_the_axes(session):
+    """The same recording with every frame as calibration ("all"): free movement pulls the axes away."""
+    param = _param(session, calibration="all")
+    assert param.calibration_source == "all" and param.calibration.all()
+    assert compare(param, session, BODY).axis_err.max() > 10.0
+
+
+@pytest.fixture(scope="module")
+def long_free_session():
+    """Protocol then 40 s of free movement at 60 Hz, noise-free: free movement twice as long as the protocol."""
+    return protocol_and_free(BODY, rate=60.0, free_seconds=40.0, seed=2)
+
+
+@pytest.mark.parametrize("recording", ["session", "long_free_session"])
+def test_without_a_window_the_main_movements_are_found(recording, request):
+    """The default (no window): each joint's main movements are detected, and from them every joint's axes
+    come within 3 degrees and its angles within 5 degrees RMS, as with the protocol given as a window."""
+    rec = request.getfixturevalue(recording)
+    param = _param(rec, rate=rec.rate)
+    assert param.calibration_source == "automatic"
+    c = compare(param, rec, BODY)
+    print("\naxis error (deg):", np.round(c.axis_err, 2), "\nangle RMS (deg):\n", np.round(c.angle_rms, 2))
+    assert c.axis_err.max() < 3.0
+    assert c.angle_rms.max() < 5.0
+    np.testing.assert_array_equal(param.n_axes, np.where(KIND == "hinge", 1, 2))
+    # The chosen frames of the joints with two axes are the protocol's: free movement turns them about
+    # drifting mixtures of their axes, or about one axis from another posture.
+    stop = rec.protocol[1]
+    two = KIND != "hinge"
+    chosen = param.calibration[:, two]
+    assert (chosen[:stop].sum(0) >= 0.8 * chosen.sum(0)).all()
+    assert (chosen.sum(0) >= 30).all()
+
+
+def test_free_movement_alone_falls_back_to_every_frame():
+    """No main movement to find (free movement only): a joint with two axes calibrates on every frame."""
+    from scipy.spatial.transform import Rotation
+
+    _, truth = synth.simulate(BODY, "calibration", duration=20.0, rate=RATE, seed=9)
+    rot = truth.segment_rotations
+    quats = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat(scalar_first=True).reshape(*rot.shape[:2], 4)
+    param = parameterize_arrays(truth.joint_positions, BODY.edges, quats, root=BODY.root,
+                                segment_translations=truth.segment_translations, rate=RATE)
+    assert param.calibration_source == "automatic"
+    assert param.calibration[:, KIND != "hinge"].all()
 
 
 def test_calibration_window_forms_agree(session):
