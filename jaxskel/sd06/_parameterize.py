@@ -408,6 +408,8 @@ def _one_swing_axis_rms(
 #: How far (along the axis, on the unit sphere: about 6 degrees) a main movement's sample may
 #: leave the circle about its axis through the rest sample.
 MAIN_CIRCLE_TOLERANCE = 0.1
+#: Side of the grid cells (on the unit sphere of axes: about 3 degrees) within which windows share a main movement's axis.
+MAIN_AXIS_CELL = 0.05
 
 
 def _main_movement_frames(
@@ -418,7 +420,6 @@ def _main_movement_frames(
     noise_var: Float[Array, ""],
     window: int,
     purity: float,
-    cell: float,
     min_main: int,
 ) -> Bool[Array, " F"]:
     """Frames inside a main movement: the joint turns about one fixed axis (automatic calibration).
@@ -427,8 +428,9 @@ def _main_movement_frames(
     vector since the first frame where it turns about one fixed axis (``w_g`` all
     along it: ``r_f = theta_f A``), and the steps' noise telescopes (``w_g`` carries
     ``e_g - e_{g-1}``), so ``r`` has the noise of one frame, not of a step. Around
-    every frame, the centred scatter ``S = sum (r - rbar)(r - rbar)^T`` over
-    ``window`` frames (prefix sums of ``r`` and ``r r^T``: one pass) has
+    every frame (evaluated once per block of an eighth of a window), the centred
+    scatter ``S = sum (r - rbar)(r - rbar)^T`` over about ``window`` frames (block
+    sums of ``r`` and ``r r^T``, then prefix sums over the blocks: one pass) has
     eigenvalues ``l_1 >= l_2 >= l_3``; noise adds about ``n s^2`` to each (n frames),
     which is removed. A frame belongs to a main movement when the joint moves
     there (``movement``), the noise-free excursion exceeds the noise
@@ -445,30 +447,39 @@ def _main_movement_frames(
     is left out: its samples would pull the axis planes. And a short stretch of
     free movement can turn about a mixture of the axes that drifts from stretch to
     stretch, while a main movement keeps its axis: a frame is kept only when its
-    axis is shared, to within a grid cell of chord ``cell`` on the sphere of axes,
+    axis is shared, to within a grid cell of side :data:`MAIN_AXIS_CELL` on the sphere of axes,
     by at least ``min_main`` such frames of the recording (counts per cell of
     ``+-u``, on two grids half a cell apart, the larger count taken).
     """
     n = w.shape[0]
     r = jnp.cumsum(w, axis=0)
-    outer = jnp.einsum("fi,fj->fij", r, r)
-    cum_r = jnp.concatenate([jnp.zeros((1, 3), w.dtype), jnp.cumsum(r, axis=0)])
-    cum_rr = jnp.concatenate([jnp.zeros((1, 3, 3), w.dtype), jnp.cumsum(outer, axis=0)])
-    half = window // 2
-    idx = jnp.arange(n)
-    lo, hi = jnp.clip(idx - half, 0, n), jnp.clip(idx + half + 1, 0, n)
-    count = (hi - lo).astype(w.dtype)
-    total_r = cum_r[hi] - cum_r[lo]
-    scatter = cum_rr[hi] - cum_rr[lo] - jnp.einsum("fi,fj->fij", total_r, total_r) / count[:, None, None]
+    # Windows overlap almost entirely from one frame to the next: they are evaluated
+    # per block of ``stride`` frames (an eighth of a window), each window the
+    # ``2 h + 1`` blocks around a frame's own block.
+    stride = max(1, window // 8)
+    n_blocks = -(-n // stride)
+    h = max(1, (window // 2) // stride)
+    filled = jnp.concatenate([jnp.ones(n, w.dtype), jnp.zeros(n_blocks * stride - n, w.dtype)])
+    padded = jnp.concatenate([r, jnp.zeros((n_blocks * stride - n, 3), w.dtype)]).reshape(n_blocks, stride, 3)
+    sums = [filled.reshape(n_blocks, stride).sum(1), padded.sum(1), jnp.einsum("bsi,bsj->bij", padded, padded)]
+    cums = [jnp.concatenate([jnp.zeros((1, *x.shape[1:]), x.dtype), jnp.cumsum(x, axis=0)]) for x in sums]
+    block = jnp.arange(n_blocks)
+    lo, hi = jnp.clip(block - h, 0, n_blocks), jnp.clip(block + h + 1, 0, n_blocks)
+    count, total_r, total_rr = (c[hi] - c[lo] for c in cums)
+    count = jnp.maximum(count, 1.0)
+    scatter = total_rr - jnp.einsum("bi,bj->bij", total_r, total_r) / count[:, None, None]
     vals, vecs = eigh3(scatter)
     vals = jnp.maximum(vals - (count * noise_var)[:, None], 0.0)
     total = jnp.sum(vals, -1)
     strong = vals[:, 2] > 9.0 * count * noise_var
-    pure = movement & strong & (vals[:, 2] >= purity * jnp.maximum(total, 1e-300)) & (total > 0)
+    own = jnp.arange(n) // stride
+    pure = (strong & (vals[:, 2] >= purity * jnp.maximum(total, 1e-300)) & (total > 0))[own] & movement
+    vecs = vecs[own]
     axis = vecs[:, :, 2]
     # A main movement starts from the default pose: the sample stays on the circle
     # about the window's axis through the rest sample.
     pure = pure & (jnp.abs(jnp.sum(axis * (p - rest), -1)) <= MAIN_CIRCLE_TOLERANCE)
+    cell = MAIN_AXIS_CELL
     side = int(math.ceil(2.0 / cell)) + 2
     weight = pure.astype(w.dtype)
 
@@ -489,7 +500,7 @@ def _main_movement_frames(
 # only that stage.
 @jit(
     static_argnames=("n_bins", "min_prominence", "low_speed_fraction", "hinge_tolerance", "auto", "window", "purity",
-                     "min_calibration", "cell", "min_main"),
+                     "min_calibration", "min_main"),
 )
 def _filter_stage(
     limb: Float[Array, "F S 4"],
@@ -508,7 +519,6 @@ def _filter_stage(
     window: int,
     purity: float,
     min_calibration: int,
-    cell: float,
     min_main: int,
 ) -> dict[str, Array]:
     """Relative rotations, samples, calibration frames, movement filter (§4.1) and axes per joint.
@@ -529,15 +539,22 @@ def _filter_stage(
             speed, defined & in_cal, n_bins, min_prominence, low_speed_fraction
         )
         moving = defined & (speed > threshold)
+        # The axis count from every calibration frame: the automatic choice keeps
+        # windows that turn about one axis, so a two-axis joint whose main movements
+        # are found for one axis only would look like a hinge there.
+        counted = moving & in_cal
         if auto:
-            found = _main_movement_frames(w, p, p[rest_frame], moving, noise_var, window, purity, cell, min_main)
+            found = _main_movement_frames(w, p, p[rest_frame], moving, noise_var, window, purity, min_main)
             found = found & in_cal
             in_cal = jnp.where(jnp.sum(found) >= min_calibration, found, in_cal)
         movement = moving & in_cal
         weight = (valid & in_cal).astype(p.dtype)
         centroid = jnp.sum(weight[:, None] * p, 0) / jnp.maximum(jnp.sum(weight), 1.0)
+        counted_weight = (valid & counted).astype(p.dtype)
+        counted_centroid = jnp.sum(counted_weight[:, None] * p, 0) / jnp.maximum(jnp.sum(counted_weight), 1.0)
         hinge_rms = jnp.minimum(
-            _one_axis_rms(q, p, movement, centroid, noise_cov), _one_swing_axis_rms(p, movement, rest_frame, noise_cov)
+            _one_axis_rms(q, p, counted, counted_centroid, noise_cov),
+            _one_swing_axis_rms(p, counted, rest_frame, noise_cov),
         )
         n_axes = jnp.where(given > 0, given, jnp.where(hinge_rms > hinge_tolerance, 2, 1))
         return {
@@ -731,8 +748,9 @@ class Parameterization:
         "automatic", the default) the frames where the joint performs a main
         movement (it turns about one fixed axis, starting from the default pose,
         an axis many frames share; see ``_main_movement_frames``), or every frame
-        when fewer than ``min_calibration_frames`` such frames exist. Angles are
-        given for every frame.
+        when fewer than ``min_calibration_frames`` such frames exist; the automatic
+        choice sets the axes and the movement filter, and the axis count comes from
+        every frame. Angles are given for every frame.
     calibration_source
         "all", "given", "automatic" or "trial" (a separate calibration recording).
     noise
@@ -948,7 +966,6 @@ def parameterize_normalized(
         "window": window,
         "purity": float(purity),
         "min_calibration": int(min_calibration_frames),
-        "cell": float(cell),
         "min_main": max(3, round(main_s * rate) if rate else 30),
     }
     axes_options = {
