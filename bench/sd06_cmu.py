@@ -40,8 +40,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "sd06_cmu.md")
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT / "tests"))
-    import jaxskel
     from human_markers import segment_parts
+
+    import jaxskel
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -525,8 +525,9 @@ def _filter_stage(
 
     ``calibration`` (F,) are the frames the axes may come from (given, or all
     valid frames when ``auto``; then each joint keeps only its main-movement
-    frames, :func:`_main_movement_frames`, or all frames when fewer than
-    ``min_calibration`` are found).
+    frames, :func:`_main_movement_frames` with ``min_main`` frames sharing an
+    axis, or all frames when fewer than ``min_calibration`` are found; the axis
+    count still comes from all of them).
     """
     q = jnp.swapaxes(quat_multiply(quat_conjugate(limb[:, edges[:, 0]]), limb[:, edges[:, 1]]), 0, 1)
 
