@@ -474,8 +474,7 @@ def _main_movement_frames(
     strong = vals[:, 2] > 9.0 * count * noise_var
     own = jnp.arange(n) // stride
     pure = (strong & (vals[:, 2] >= purity * jnp.maximum(total, 1e-300)) & (total > 0))[own] & movement
-    vecs = vecs[own]
-    axis = vecs[:, :, 2]
+    axis = vecs[:, :, 2][own]  # the eigenvector of l_1
     # A main movement starts from the default pose: the sample stays on the circle
     # about the window's axis through the rest sample.
     pure = pure & (jnp.abs(jnp.sum(axis * (p - rest), -1)) <= MAIN_CIRCLE_TOLERANCE)
@@ -540,19 +539,21 @@ def _filter_stage(
             speed, defined & in_cal, n_bins, min_prominence, low_speed_fraction
         )
         moving = defined & (speed > threshold)
+
+        def mean_sample(frames):
+            weight = (valid & frames).astype(p.dtype)
+            return jnp.sum(weight[:, None] * p, 0) / jnp.maximum(jnp.sum(weight), 1.0)
+
         # The axis count from every calibration frame: the automatic choice keeps
         # windows that turn about one axis, so a two-axis joint whose main movements
         # are found for one axis only would look like a hinge there.
-        counted = moving & in_cal
+        counted, counted_centroid = moving & in_cal, mean_sample(in_cal)
         if auto:
             found = _main_movement_frames(w, p, p[rest_frame], moving, noise_var, window, purity, min_main)
             found = found & in_cal
             in_cal = jnp.where(jnp.sum(found) >= min_calibration, found, in_cal)
         movement = moving & in_cal
-        weight = (valid & in_cal).astype(p.dtype)
-        centroid = jnp.sum(weight[:, None] * p, 0) / jnp.maximum(jnp.sum(weight), 1.0)
-        counted_weight = (valid & counted).astype(p.dtype)
-        counted_centroid = jnp.sum(counted_weight[:, None] * p, 0) / jnp.maximum(jnp.sum(counted_weight), 1.0)
+        centroid = mean_sample(in_cal)
         hinge_rms = jnp.minimum(
             _one_axis_rms(q, p, counted, counted_centroid, noise_cov),
             _one_swing_axis_rms(p, counted, rest_frame, noise_cov),
