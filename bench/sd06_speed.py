@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import subprocess
@@ -93,61 +92,26 @@ def child(n_frames: int) -> None:
     }))
 
 
-def _angle_about(a, u, v):
-    """Signed angle about unit ``a`` from ``u`` to ``v`` (rows of ``u``, ``v``)."""
-    au, av = u @ a, v @ a
-    return np.arctan2(np.cross(u, v) @ a, np.sum(u * v, -1) - au * av)
-
-
 def numpy_reference() -> tuple[float, float]:
     """The angles of every joint given the axes, in NumPy: vectorised over frames, the branch walk a
-    scalar loop. Returns (seconds, largest angle difference to parameterize, rad)."""
+    scalar loop (``tests/sd06/sd06_truth.reference_angles``, the tests' reference). Returns (seconds,
+    largest angle difference to parameterize, rad)."""
     from scipy.spatial.transform import Rotation
+
+    sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "tests" / "sd06")]
+    from sd06_truth import reference_angles
 
     z = np.load("/tmp/sd06_speed_param.npz")
     limb, edges = z["limb"], z["edges"]
     main = np.eye(3)[z["main_axis"]] * z["main_sign"][:, None]
-    n_f, n_j = limb.shape[0], edges.shape[0]
-    out = np.zeros((n_f, n_j, 3))
+    out = np.zeros((limb.shape[0], edges.shape[0], 3))
     t0 = time.perf_counter()
-    for j in range(n_j):
+    for j, (parent, child) in enumerate(edges):
+        q = np.einsum("fji,fjk->fik", limb[:, parent], limb[:, child])
+        rest = Rotation.from_quat(z["rest_rotation"][j], scalar_first=True).as_matrix()
         a, b = z["axes"][j]
-        r = z["rest_direction"][j]
-        rest = Rotation.from_quat(z["rest_rotation"][j], scalar_first=True)
-        q = np.einsum("fji,fjk->fik", limb[:, edges[j, 0]], limb[:, edges[j, 1]])
-        p = q @ main[edges[j, 1]]
-        if z["n_axes"][j] == 2:
-            c = a @ b
-            h1, h2 = a @ r, p @ b
-            x0 = ((h1 - c * h2)[:, None] * a + (h2 - c * h1)[:, None] * b) / (1 - c * c)
-            line = np.cross(a, b) / np.linalg.norm(np.cross(a, b))
-            t = np.sqrt(np.maximum(1 - np.sum(x0 * x0, -1), 0.0))[:, None]
-            ab = []
-            for x in (x0 + t * line, x0 - t * line):
-                x = x / np.linalg.norm(x, axis=-1, keepdims=True)
-                ab.append(np.stack([_angle_about(a, np.broadcast_to(r, x.shape), x), _angle_about(b, x, p)], -1))
-            cand = np.stack(ab, 1).tolist()  # (F, 2 candidates, 2 angles) as Python floats for the walk
-            chosen = np.zeros((n_f, 2))
-            start = int(z["rest_frame"][j])
-            for frames in (range(start, n_f), range(start - 1, -1, -1)):
-                pa = pb = 0.0
-                for f in frames:
-                    best, cost = None, math.inf
-                    for ca, cb in cand[f]:
-                        da = math.remainder(ca - pa, math.tau)
-                        db = math.remainder(cb - pb, math.tau)
-                        k = da * da + db * db + 0.1 * (ca * ca + cb * cb)
-                        if k < cost:
-                            best, cost = (ca, cb), k
-                    pa, pb = chosen[f] = best
-            alpha, beta = chosen[:, 0], chosen[:, 1]
-        else:
-            alpha, beta = _angle_about(a, np.broadcast_to(r, p.shape), p), np.zeros(n_f)
-        swing = Rotation.from_rotvec(beta[:, None] * b) * Rotation.from_rotvec(alpha[:, None] * a)
-        d = swing.apply(r)
-        m = (Rotation.from_matrix(q) * (swing * rest).inv()).as_quat()  # x, y, z, w
-        m = np.where(m[:, 3:] < 0, -m, m)
-        out[:, j] = np.stack([alpha, beta, 2 * np.arctan2(np.sum(m[:, :3] * d, -1), m[:, 3])], -1)
+        out[:, j] = reference_angles(q, a, b if z["n_axes"][j] == 2 else None, rest, main[child],
+                                     start=int(z["rest_frame"][j]))
     seconds = time.perf_counter() - t0
     diff = np.abs(np.angle(np.exp(1j * (out - z["angles"]))))
     return seconds, float(np.max(diff))

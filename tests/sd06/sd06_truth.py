@@ -12,6 +12,7 @@ with what the generator did.
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -66,7 +67,10 @@ def _angle_about(a, u, v):
     return np.arctan2(np.cross(u, v) @ a, np.sum(u * v, -1) - au * av)
 
 
-def reference_angles(rel: np.ndarray, first: np.ndarray, second: np.ndarray | None, rest_rel: np.ndarray, main: np.ndarray):
+def reference_angles(
+    rel: np.ndarray, first: np.ndarray, second: np.ndarray | None, rest_rel: np.ndarray, main: np.ndarray,
+    start: int = 0,
+):
     """SD06 angles ``(alpha, beta, tau)`` of relative rotations (NumPy/SciPy; the branch by a plain loop).
 
     ``rel`` (F, 3, 3) relative limb rotations ``Q(f)``, ``first`` the axis that
@@ -76,8 +80,9 @@ def reference_angles(rel: np.ndarray, first: np.ndarray, second: np.ndarray | No
     direction ``r`` to the sample ``p``; of the two circle intersections the one
     whose angles are nearest the previous frame's (plus 0.1 times their squared
     size: near the rest pose where continuity cannot tell) is kept, walking
-    from frame 0 (which must be the rest pose); the twist is the angle about
-    ``d = S r`` of ``Q (S Q_rest)^T``.
+    from frame ``start`` (the rest pose, angles 0) forward and then backward; the
+    twist is the angle about ``d = S r`` of ``Q (S Q_rest)^T``. Vectorised over
+    frames but for the walk, a scalar loop (also ``bench/sd06_speed.py``'s reference).
     """
     r = rest_rel @ main
     p = rel @ main
@@ -97,13 +102,18 @@ def reference_angles(rel: np.ndarray, first: np.ndarray, second: np.ndarray | No
         for x in (x0 + t * line, x0 - t * line):
             x = x / np.linalg.norm(x, axis=-1, keepdims=True)
             cands.append(np.stack([_angle_about(a, r, x), _angle_about(b, x, p)], -1))
-        cands = np.stack(cands, 1)  # (F, 2, 2)
+        cands = np.stack(cands, 1).tolist()  # (F, 2 candidates, 2 angles) as Python floats for the walk
         out = np.zeros((n, 2))
-        prev = np.zeros(2)
-        for f in range(n):
-            step = np.angle(np.exp(1j * (cands[f] - prev)))
-            cost = np.sum(step**2, -1) + 0.1 * np.sum(cands[f] ** 2, -1)
-            out[f] = prev = cands[f][int(np.argmin(cost))]
+        for frames in (range(start, n), range(start - 1, -1, -1)):
+            prev_a = prev_b = 0.0
+            for f in frames:
+                best, least = None, math.inf
+                for ca, cb in cands[f]:
+                    da, db = math.remainder(ca - prev_a, math.tau), math.remainder(cb - prev_b, math.tau)
+                    cost = da * da + db * db + 0.1 * (ca * ca + cb * cb)
+                    if cost < least:
+                        best, least = (ca, cb), cost
+                prev_a, prev_b = out[f] = best
         alpha, beta = out[:, 0], out[:, 1]
         swing = _rot(b, beta) @ _rot(a, alpha)
     d = swing @ r
