@@ -152,7 +152,7 @@ def main() -> None:
         f"Command: `PYTHONPATH=. python bench/sd06_speed.py --frames {args.frames}`",
         "",
         f"Device: {device} (no GPU). Recording: `synth.full_body`, 14 joints, {args.frames} frames at 120 Hz, "
-        "every degree of freedom moving; the defaults (direction joining, every frame calibrates).",
+        "every degree of freedom moving; the defaults (direction joining, automatic calibration).",
         "",
         "| seconds | `normalize` | `parameterize` (given the normalisation) | whole |",
         "|---|---|---|---|",

@@ -1,15 +1,15 @@
 """XLA compiler options of jaxskel's own programs, set per program (never through ``XLA_FLAGS``).
 
 XLA:CPU hands some elementwise fusions to YNNPACK. For float64 (every jaxskel
-computation) those fusions run several times slower than XLA's own loops: on the
-SD06 angle stage of a 24,000-frame recording 130 ms against 29 ms, and a whole
-:func:`jaxskel.sd06.parameterize` about 20 % slower (``bench/sd06_speed.py``).
+computation) those fusions run several times slower than XLA's own loops, which
+dominated the SD06 stages on long recordings (measured: CHANGELOG, issue 47).
 The option ``xla_cpu_experimental_ynn_fusion_type`` left empty turns them off.
 :func:`jit` passes it as a ``jax.jit`` ``compiler_options`` entry, which applies to
 that program alone; the host's other programs and global flags are left as they
 are. Called inside another jit (its arguments are tracers), a program is a plain
-nested ``jax.jit``: JAX accepts compiler options on the outermost jit only. Other backends ignore the option. A jaxlib that does not know it (older or
-newer releases) gets no options: whether it is known is found out once, by
+nested ``jax.jit``: JAX accepts compiler options on the outermost jit only. Other
+backends ignore the option. A jaxlib that does not know it (older or newer
+releases) gets no options: whether it is known is found out once, by
 compiling a one-element program at the first call of a program built by :func:`jit`
 (not at import, which must not start a backend).
 """
@@ -80,7 +80,9 @@ class _Jitted:
 
 
 def jit(fn: Callable | None = None, **kwargs: Any) -> Any:
-    """``jax.jit`` with jaxskel's compiler options (module docstring); usable as ``@jit`` or ``@jit(static_argnames=...)``."""
+    """``jax.jit`` with jaxskel's compiler options (module docstring).
+
+    Usable as ``@jit`` or ``@jit(static_argnames=...)``."""
     if fn is None:
         return functools.partial(jit, **kwargs)
     return _Jitted(fn, kwargs)

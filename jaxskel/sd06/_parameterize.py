@@ -408,7 +408,8 @@ def _one_swing_axis_rms(
 #: How far (along the axis, on the unit sphere: about 6 degrees) a main movement's sample may
 #: leave the circle about its axis through the rest sample.
 MAIN_CIRCLE_TOLERANCE = 0.1
-#: Side of the grid cells (on the unit sphere of axes: about 3 degrees) within which windows share a main movement's axis.
+#: Side of the grid cells (on the unit sphere of axes: about 3 degrees) within which windows
+#: share a main movement's axis.
 MAIN_AXIS_CELL = 0.05
 
 
@@ -935,10 +936,11 @@ def parameterize_normalized(
     if n_frames < 3:
         raise InputError(f"parameterisation needs a motion of several frames, got {n_frames}")
     given = _n_axes_array(n_axes, norm.n_joints)
-    if not 0.5 <= float(purity) < 1.0 or not float(window_s) > 0 or int(min_calibration_frames) < 3:
+    if (not 0.5 <= float(purity) < 1.0 or not float(window_s) > 0 or not float(main_s) > 0
+            or int(min_calibration_frames) < 3):
         raise InputError(
-            f"purity must be in [0.5, 1), window_s > 0 and min_calibration_frames >= 3; got {purity}, "
-            f"{window_s}, {min_calibration_frames}"
+            f"purity must be in [0.5, 1), window_s > 0, main_s > 0 and min_calibration_frames >= 3; got {purity}, "
+            f"{window_s}, {main_s}, {min_calibration_frames}"
         )
     if calibration is None and norm.calibration is not None and not norm.calibration.all():
         calibration = norm.calibration  # the normalisation's window

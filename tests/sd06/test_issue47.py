@@ -208,6 +208,8 @@ def test_bad_calibration_windows_are_reported(session):
     rec = session
     with pytest.raises(InputError, match="at least 3"):
         _param(rec, calibration=(5, 6))
+    with pytest.raises(InputError, match="main_s > 0"):
+        _param(rec, main_s=float("nan"))
     with pytest.raises(InputError, match="frame rate"):
         _param(rec, calibration=(0.0, 10.0))
     with pytest.raises(InputError, match="one entry per frame"):
