@@ -1,17 +1,23 @@
 """XLA compiler options of jaxskel's own programs, set per program (never through ``XLA_FLAGS``).
 
-XLA:CPU hands some elementwise fusions to YNNPACK. For float64 (every jaxskel
-computation) those fusions run several times slower than XLA's own loops, which
-dominated the SD06 stages on long recordings (measured: CHANGELOG, issue 47).
-The option ``xla_cpu_experimental_ynn_fusion_type`` left empty turns them off.
-:func:`jit` passes it as a ``jax.jit`` ``compiler_options`` entry, which applies to
-that program alone; the host's other programs and global flags are left as they
-are. Called inside another jit (its arguments are tracers), a program is a plain
-nested ``jax.jit``: JAX accepts compiler options on the outermost jit only. Other
-backends ignore the option. A jaxlib that does not know it (older or newer
-releases) gets no options: whether it is known is found out once, by
-compiling a one-element program at the first call of a program built by :func:`jit`
-(not at import, which must not start a backend).
+Every jaxskel program is compiled through :func:`jit`, which passes :data:`OPTIONS`
+as ``jax.jit(..., compiler_options=...)``: they apply to that program alone, and the
+host's other programs and global flags are left as they are. Other backends ignore
+the CPU options.
+
+* ``xla_cpu_experimental_ynn_fusion_type`` empty: XLA:CPU hands no elementwise
+  fusions to YNNPACK, whose float64 (every jaxskel computation) fusions run several
+  times slower than XLA's own loops;
+* ``xla_cpu_use_fusion_emitters`` off: XLA:CPU emits its fusions with its older
+  LLVM emitters, which compile jaxskel's programs markedly faster at the same speed
+  (measured: CHANGELOG; ``bench/sd06_speed.py``).
+
+Called inside another jit (its arguments are tracers), a program is a plain nested
+``jax.jit``: JAX accepts compiler options on the outermost jit only. A jaxlib that
+does not know an option (older or newer releases) compiles without it: which options
+are known is found out once, by compiling a one-element program per option at the
+first call of a program built by :func:`jit` (not at import, which must not start a
+backend).
 """
 
 from __future__ import annotations
@@ -27,17 +33,20 @@ import numpy as np
 __all__ = ["compiler_options", "jit"]
 
 #: The options jaxskel's programs are compiled with, where the running jaxlib knows them.
-OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+OPTIONS: dict[str, Any] = {"xla_cpu_experimental_ynn_fusion_type": "", "xla_cpu_use_fusion_emitters": False}
 
 
 @functools.lru_cache(maxsize=1)
-def compiler_options() -> dict[str, str]:
-    """:data:`OPTIONS` if this jaxlib accepts them, else ``{}``."""
-    try:
-        jax.jit(lambda x: x + 1, compiler_options=OPTIONS).lower(np.zeros(1, np.float32)).compile()
-    except Exception:  # noqa: BLE001 - "No such compile option": compile with the defaults
-        return {}
-    return dict(OPTIONS)
+def compiler_options() -> dict[str, Any]:
+    """The entries of :data:`OPTIONS` that this jaxlib accepts."""
+    known = {}
+    for name, value in OPTIONS.items():
+        try:
+            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(np.zeros(1, np.float32)).compile()
+        except Exception:  # noqa: BLE001 - "No such compile option": compile without it
+            continue
+        known[name] = value
+    return known
 
 
 class _Jitted:
@@ -61,7 +70,7 @@ class _Jitted:
         return self._jitted
 
     @property
-    def compiler_options(self) -> dict[str, str]:
+    def compiler_options(self) -> dict[str, Any]:
         return compiler_options()
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:

@@ -60,16 +60,31 @@ def test_through_the_saved_program_cache(tmp_path):
     np.testing.assert_allclose(np.asarray(first), np.asarray(_angles(v)), rtol=1e-12, atol=1e-14)
 
 
-def test_an_unknown_option_leaves_programs_with_the_defaults(monkeypatch):
-    monkeypatch.setattr(co, "OPTIONS", {"xla_cpu_no_such_option_anywhere": ""})
+def test_an_unknown_option_is_left_out_and_the_known_ones_kept(monkeypatch):
+    known = dict(co.OPTIONS)
+    monkeypatch.setattr(co, "OPTIONS", {**known, "xla_cpu_no_such_option_anywhere": ""})
     co.compiler_options.cache_clear()
     try:
-        assert co.compiler_options() == {}
+        assert co.compiler_options() == known
         v = jnp.arange(6.0).reshape(2, 3) + 1.0
-        np.testing.assert_allclose(np.asarray(co.jit(_angles)(v)), np.asarray(_angles(v)))
+        np.testing.assert_allclose(np.asarray(co.jit(_angles)(v)), np.asarray(_angles(v)), atol=1e-12)
+        monkeypatch.setattr(co, "OPTIONS", {"xla_cpu_no_such_option_anywhere": ""})
+        co.compiler_options.cache_clear()
+        assert co.compiler_options() == {}
+        np.testing.assert_allclose(np.asarray(co.jit(_angles)(v)), np.asarray(_angles(v)), atol=1e-12)
     finally:
         monkeypatch.undo()
         co.compiler_options.cache_clear()
+
+
+def test_the_fusion_emitter_option_reaches_xla():
+    """XLA refuses a wrong type for an option it knows: the entry is passed to XLA, not dropped on the way."""
+    assert co.OPTIONS["xla_cpu_use_fusion_emitters"] is False
+    v = jnp.ones((4, 3))
+    jax.jit(_angles, compiler_options={"xla_cpu_use_fusion_emitters": False}).lower(v).compile()
+    with pytest.raises(Exception, match="(?i)xla_cpu_use_fusion_emitters|bool|invalid|parse"):
+        jax.jit(_angles, compiler_options={"xla_cpu_use_fusion_emitters": "not a bool"}).lower(v).compile()
+    assert co.jit(_angles).compiler_options == co.compiler_options()
 
 
 def test_no_global_flags_change():
