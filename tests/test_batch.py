@@ -169,6 +169,7 @@ def test_cli_fit_batch_on_a_local_dask_cluster(trials, tmp_path):
         assert sorted(r["status"] for r in rows.values()) == ["failed"] + ["skipped"] * 4
 
 
+@pytest.mark.extended  # about a minute on 2 cores; CI runs the rest
 def test_chunks_are_spread_over_several_devices(tmp_path):
     script = textwrap.dedent(
         """

@@ -287,6 +287,7 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
     np.testing.assert_allclose(exported.positions, jaxskel.result.to_opensim_frame(fitted, trial.up_axis), atol=1e-5)
 
 
+@pytest.mark.extended  # about a minute on 2 cores; CI runs the rest
 def test_cli_warnings_are_one_labelled_message(tmp_path, capsys):
     """A fit that warns (the random tree of the test above, given one segment too few: the
     rigid skeleton names the markers it cannot hold) prints the warning as the tool's own

@@ -187,6 +187,7 @@ def test_cmu_legs_with_automatic_segment_count():
     assert right_hip and right_hip[0] in {u.joint for u in result.undetermined_joints()}
 
 
+@pytest.mark.extended  # about a minute on 2 cores; CI runs the rest
 def test_standing_trial_names_its_joints_unexercised_and_keeps_them():
     """Hamner's static trial (subject standing, 2.5 s): every marker pair keeps its
     distance (largest std 4.3 mm, under the 9 mm rigidity limit), so the automatic count is

@@ -371,6 +371,7 @@ def test_walk_leaves_wrists_unjointed_and_a_calibration_trial_recovers_them():
             assert rmse < 0.01, (walk_truth.joint_names[tj], rmse)
 
 
+@pytest.mark.extended  # about a minute on 2 cores; CI runs the rest
 def test_a_walk_alone_names_the_joints_it_cannot_place():
     """The issue's "never a confident wrong answer" on the walk that used to say nothing
     (seed 15, 30 s, the bench's conditions: 2 mm noise, 1 mm soft tissue, gaps). Its
