@@ -67,6 +67,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._errors import DegenerateMotionError, InputError
+from .._math.order import nanquantiles_np
 from .._math.padding import bucket_size
 from .._runtime.precision import float64_scope
 from ..io import Trial
@@ -375,6 +376,10 @@ def count_singletons(labels: np.ndarray) -> int:
     return int(np.sum(np.bincount(labels) == 1))
 
 
+#: The lower and upper quartiles and the largest value of a marker's costs to a group (:func:`_mend`).
+_MEND_QUANTILES = np.array([0.25, 0.75, 1.0])
+
+
 def _mend(labels: np.ndarray, a: np.ndarray, sigma: float, ratio: float = MEND_RATIO) -> np.ndarray:
     """Move markers out of groups they plainly do not belong to, lowering the score.
 
@@ -429,10 +434,8 @@ def _mend(labels: np.ndarray, a: np.ndarray, sigma: float, ratio: float = MEND_R
         with np.errstate(divide="ignore", invalid="ignore"):
             leave = np.where(n_own > 1, (p[labels] - s[rows, labels]) / (n_own - 1) - p[labels] / n_own, np.inf)
         join = (p[None, :] + s) / (n[None, :] + 1) - p[None, :] / n[None, :]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no evidence
-            # lower quartile, upper quartile and largest A_ij of each marker to each group
-            q = np.stack([np.nanpercentile(a_obs[:, labels == g], [25, 75, 100], axis=1) for g in range(k)], axis=-1)
+        # lower quartile, upper quartile and largest A_ij of each marker to each group (NaN: no evidence)
+        q = np.stack([nanquantiles_np(a_obs[:, labels == g], _MEND_QUANTILES) for g in range(k)], axis=-1)
         own_low = q[0, rows, labels]  # (M,) NaN: nothing observed with its own group
         other_high, other_max = np.where(np.isnan(q[1:]), np.inf, q[1:])  # (M, k) each
         loose = (own_low > sigma)[:, None] | (ratio * other_max < own_low[:, None])  # (M, k)
