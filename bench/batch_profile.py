@@ -2,7 +2,8 @@
 
 Usage::
 
-    PYTHONPATH=. python bench/batch_profile.py [--trials 6] [--short 10] [--long 120] [--out docs/bench/batch_profile.md]
+    PYTHONPATH=. python bench/batch_profile.py [--trials 6] [--short 10] [--long 120]
+        [--out docs/bench/batch_profile.md]
 
 Data: ``bench.cases.make_trial`` synthetic full bodies (the noisy default corruption: 2 mm noise, soft
 tissue, gaps), ``--trials`` short recordings of ``--short`` seconds (seeds 1..N) and one of ``--long``

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .linalg import eigh3
+from .rotation import cross_covariance
 
 __all__ = ["align_to_reference", "closed_form_align", "procrustes"]
 
@@ -38,12 +39,7 @@ def closed_form_align(
     has unbounded derivatives where singular values meet): the learning API keeps
     ``horn_align``.
     """
-    w = weights.astype(source.dtype)
-    wsum = jnp.sum(w)
-    wn = w / jnp.where(wsum > 0, wsum, 1.0)
-    mu_s = jnp.sum(wn[:, None] * source, axis=0)
-    mu_t = jnp.sum(wn[:, None] * target, axis=0)
-    m = jnp.einsum("n,ni,nj->ij", wn, target - mu_t, source - mu_s)
+    mu_s, mu_t, m = cross_covariance(source, target, weights)
     _, v = eigh3(m.T @ m)  # ascending: v[:, 2] is the leading right singular vector
     v1, v2 = v[:, 2], v[:, 1]
     a1, a2 = m @ v1, m @ v2

@@ -44,6 +44,7 @@ from . import rotation_planes
 __all__ = [
     "axis_angle_to_matrix_np",
     "axis_angle_to_quat",
+    "cross_covariance",
     "det3",
     "horn_align",
     "inverse_right_jacobian",
@@ -209,6 +210,20 @@ def det3(m: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
 
 
 # -------------------------------------------------------------- rigid alignment
+def cross_covariance(
+    source: Float[Array, "N 3"], target: Float[Array, "N 3"], weights: Float[Array, " N"]
+) -> tuple[Float[Array, " 3"], Float[Array, " 3"], Float[Array, "3 3"]]:
+    """Weighted means ``mu_x``, ``mu_y`` and cross-covariance ``M = sum_i w_i (y_i - mu_y)(x_i - mu_x)^T /
+    sum_i w_i`` of a source ``x`` and a target ``y`` cloud (zeros where no point has weight): what a
+    least-squares rigid alignment of the two needs."""
+    w = weights.astype(source.dtype)
+    wsum = jnp.sum(w)
+    wn = w / jnp.where(wsum > 0, wsum, 1.0)
+    mu_s = jnp.sum(wn[:, None] * source, axis=0)
+    mu_t = jnp.sum(wn[:, None] * target, axis=0)
+    return mu_s, mu_t, jnp.einsum("n,ni,nj->ij", wn, target - mu_t, source - mu_s)
+
+
 def horn_align(
     source: Float[Array, "N 3"],
     target: Float[Array, "N 3"],
@@ -224,12 +239,7 @@ def horn_align(
     """
     if weights is None:
         weights = jnp.ones(source.shape[:-1], dtype=source.dtype)
-    w = weights.astype(source.dtype)
-    wsum = jnp.sum(w)
-    wn = w / jnp.where(wsum > 0, wsum, 1.0)
-    mu_s = jnp.sum(wn[:, None] * source, axis=0)
-    mu_t = jnp.sum(wn[:, None] * target, axis=0)
-    cov = jnp.einsum("n,ni,nj->ij", wn, target - mu_t, source - mu_s)
+    mu_s, mu_t, cov = cross_covariance(source, target, weights)
     u, _, vt = jnp.linalg.svd(cov)
     # det(U V^T) = det(U) det(V^T), each +-1: two cofactor expansions, no third factorisation.
     d = jnp.sign(det3(u) * det3(vt))

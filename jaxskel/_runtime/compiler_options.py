@@ -1,16 +1,17 @@
 """XLA compiler options of jaxskel's own programs, set per program (never through ``XLA_FLAGS``).
 
-Every jaxskel program is compiled through :func:`jit`, which passes :data:`OPTIONS`
-as ``jax.jit(..., compiler_options=...)``: they apply to that program alone, and the
-host's other programs and global flags are left as they are. Other backends ignore
-the CPU options.
+The SD06 programs (:mod:`jaxskel.sd06`) are compiled through :func:`jit`, which passes
+:data:`OPTIONS` as ``jax.jit(..., compiler_options=...)``: they apply to that program
+alone, and the host's other programs and global flags are left as they are. Other
+backends ignore the CPU options. The fit's programs keep XLA's defaults: the options
+did not measurably change their compile or run time.
 
 * ``xla_cpu_experimental_ynn_fusion_type`` empty: XLA:CPU hands no elementwise
   fusions to YNNPACK, whose float64 (every jaxskel computation) fusions run several
   times slower than XLA's own loops;
 * ``xla_cpu_use_fusion_emitters`` off: XLA:CPU emits its fusions with its older
-  LLVM emitters, which compile jaxskel's programs markedly faster at the same speed
-  (measured: CHANGELOG; ``bench/sd06_speed.py``).
+  LLVM emitters, which compile the SD06 programs faster and run them as
+  fast (measured: CHANGELOG; ``bench/sd06_speed.py``).
 
 Called inside another jit (its arguments are tracers), a program is a plain nested
 ``jax.jit``: JAX accepts compiler options on the outermost jit only. A jaxlib that
