@@ -67,6 +67,7 @@ __all__ = [
     "speed_threshold",
     "circle_plane",
     "circle_distance",
+    "cell_keys",
     "join_directions",
     "pca_axes",
     "em_axes",
@@ -375,14 +376,21 @@ def join_directions(
 
 
 # ------------------------------------------------------------- PCA / EM
+def cell_keys(u: Float[Array, "F 3"], cell: float, offset: float = 0.0) -> tuple[Int[Array, " F"], int]:
+    """Grid cells of side ``cell`` over the cube ``[-1, 1]^3`` holding the unit sphere: each point's cell
+    ``floor((u + 1) / cell + offset)`` per coordinate, flattened to one key, and the number of keys.
+
+    Keys order as their cells lexicographically; ``offset`` (in cells) shifts the grid."""
+    side = int(math.ceil(2.0 / cell)) + 2
+    ijk = jnp.clip(jnp.floor((u + 1.0) / cell + offset).astype(jnp.int32), 0, side - 1)
+    return (ijk[:, 0] * side + ijk[:, 1]) * side + ijk[:, 2], side**3
+
+
 def _grid_representatives(
     p: Float[Array, "F 3"], movement: Bool[Array, " F"], cell: float
 ) -> tuple[Float[Array, "F 3"], Float[Array, " F"]]:
     """Global stratification: one sample per occupied grid cell (weights 1, others 0)."""
-    side = int(2.0 / cell) + 3
-    ijk = jnp.floor((p + 1.0) / cell).astype(jnp.int32)
-    key = (ijk[:, 0] * side + ijk[:, 1]) * side + ijk[:, 2]
-    key = jnp.where(movement, key, jnp.iinfo(jnp.int32).max)
+    key = jnp.where(movement, cell_keys(p, cell)[0], jnp.iinfo(jnp.int32).max)
     order = jnp.argsort(key)
     sorted_key = key[order]
     first = jnp.concatenate([jnp.ones(1, bool), sorted_key[1:] != sorted_key[:-1]])

@@ -479,18 +479,14 @@ def _main_movement_frames(
     # A main movement starts from the default pose: the sample stays on the circle
     # about the window's axis through the rest sample.
     pure = pure & (jnp.abs(jnp.sum(axis * (p - rest), -1)) <= MAIN_CIRCLE_TOLERANCE)
-    cell = MAIN_AXIS_CELL
-    side = int(math.ceil(2.0 / cell)) + 2
     weight = pure.astype(w.dtype)
 
     def shared(offset):
-        def key(u):
-            c = jnp.clip(jnp.floor((u + 1.0) / cell + offset).astype(jnp.int32), 0, side - 1)
-            return (c[:, 0] * side + c[:, 1]) * side + c[:, 2]
-
-        counts = jax.ops.segment_sum(weight, key(axis), num_segments=side**3)
-        counts = counts + jax.ops.segment_sum(weight, key(-axis), num_segments=side**3)
-        return counts[key(axis)]
+        key, n_cells = _axes.cell_keys(axis, MAIN_AXIS_CELL, offset)
+        counts = jax.ops.segment_sum(weight, key, num_segments=n_cells)
+        counts = counts + jax.ops.segment_sum(weight, _axes.cell_keys(-axis, MAIN_AXIS_CELL, offset)[0],
+                                              num_segments=n_cells)
+        return counts[key]
 
     return pure & (jnp.maximum(shared(0.0), shared(0.5)) >= min_main)
 
