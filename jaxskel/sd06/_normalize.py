@@ -254,6 +254,29 @@ def leaf_axes_from_markers(
     return out
 
 
+def leaf_lengths_from_markers(
+    edges: Any, root: int, marker_segment: Any, marker_offsets: Any, joint_offsets: Any = None
+) -> Float[np.ndarray, " S"]:
+    """Each leaf segment's length: its farthest marker from its proximal joint (S,), 0 if unknown.
+
+    ``marker_offsets`` and ``joint_offsets[:, 1]`` (the joint in the child segment) are in
+    segment coordinates, so the distance is the same in every frame.
+    """
+    tree = tree_arrays(np.asarray(edges), root)
+    seg = np.asarray(marker_segment).reshape(-1)
+    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
+    if seg.shape[0] != off.shape[0]:
+        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
+    joints = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
+    out = np.zeros(tree.leaf.size)
+    for s in np.flatnonzero(tree.leaf & (tree.proximal >= 0)):
+        pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
+        if pts.shape[0]:
+            joint = np.zeros(3) if joints is None else joints[tree.proximal[s], 1]
+            out[s] = float(np.max(np.linalg.norm(pts - joint, axis=1)))
+    return out
+
+
 def up_vector(up_axis: Any) -> np.ndarray:
     """Unit up vector from an axis name ("z", "-y", ...) or a 3-vector."""
     if isinstance(up_axis, str):
@@ -622,6 +645,9 @@ class Normalization:
         (summed mean bulge in body scales), walking (distance in body scales).
     leaf_axes
         (S, 3) the leaves' own long axes in segment coordinates (zero rows: none).
+    leaf_lengths
+        (S,) metres from each leaf's proximal joint to its farthest marker (0: unknown,
+        or not a leaf), or None; it tells a limb's hinge (:mod:`jaxskel.sd06._anatomy`).
     """
 
     edges: np.ndarray
@@ -647,6 +673,7 @@ class Normalization:
     handedness: str = "none"
     front_evidence: np.ndarray | None = None
     leaf_axes: np.ndarray | None = None
+    leaf_lengths: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -708,6 +735,7 @@ def normalize_arrays(
     calibration: Any = None,
     rate: float | None = None,
     leaf_axes: Float[Any, "S 3"] | None = None,
+    leaf_lengths: Float[Any, " S"] | None = None,
 ) -> Normalization:
     """Normalisation from arrays: joint centres, parent->child edges, global segment quaternions.
 
@@ -746,6 +774,9 @@ def normalize_arrays(
         Optional (S, 3): each leaf segment's own long axis in its segment
         coordinates (e.g. heel -> toe, :func:`leaf_axes_from_markers`); zero rows
         (and every leaf when None) take the direction of the parent limb.
+    leaf_lengths
+        Optional (S,) metres: each leaf's length (:func:`leaf_lengths_from_markers`),
+        kept in the result for :func:`jaxskel.sd06._anatomy.limb_hinges`.
 
     Warns
     -----
@@ -808,6 +839,11 @@ def normalize_arrays(
         own = np.asarray(leaf_axes, dtype=float)
         if own.shape != (n_joints + 1, 3) or not np.all(np.isfinite(own)):
             raise InputError(f"leaf_axes must be finite, shape ({n_joints + 1}, 3) (one row per segment), got {own.shape}")
+    lengths = None if leaf_lengths is None else np.asarray(leaf_lengths, dtype=float)
+    if lengths is not None and (lengths.shape != (n_joints + 1,) or not np.all(np.isfinite(lengths) & (lengths >= 0))):
+        raise InputError(
+            f"leaf_lengths must be finite metres >= 0, shape ({n_joints + 1},) (one per segment), got {lengths.shape}"
+        )
     own_norm = np.linalg.norm(own, axis=1)
     has_own = (own_norm > 1e-9) & tree.leaf
     own = np.where(has_own[:, None], own / np.maximum(own_norm, 1e-12)[:, None], 0.0)
@@ -883,6 +919,7 @@ def normalize_arrays(
         handedness=handedness,
         front_evidence=out["front_evidence"],
         leaf_axes=own,
+        leaf_lengths=lengths,
     )
 
 
@@ -932,6 +969,18 @@ def normalize(
         calibration=calibration,
         rate=getattr(motion, "rate", None),
         leaf_axes=skeleton_leaf_axes(skeleton),
+        leaf_lengths=skeleton_leaf_lengths(skeleton),
+    )
+
+
+def skeleton_leaf_lengths(skeleton: Any) -> np.ndarray | None:
+    """:func:`leaf_lengths_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
+    seg = getattr(skeleton, "marker_segment", None)
+    off = getattr(skeleton, "marker_offsets", None)
+    if seg is None or off is None:
+        return None
+    return leaf_lengths_from_markers(
+        skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
     )
 
 

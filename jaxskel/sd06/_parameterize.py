@@ -85,6 +85,7 @@ from .._runtime import program_cache as _program_cache
 from .._runtime.compiler_options import jit
 from .._runtime.precision import float64_scope
 from . import _axes
+from ._anatomy import AXIS_COUNTS, limb_hinges
 from ._normalize import (
     FRAME_BUCKETS_PER_OCTAVE,
     Normalization,
@@ -93,6 +94,7 @@ from ._normalize import (
     normalize,
     normalize_arrays,
     skeleton_leaf_axes,
+    skeleton_leaf_lengths,
     tree_arrays,
 )
 
@@ -757,6 +759,12 @@ class Parameterization:
         joint's relative rotations, removed in the one-or-two-axes test.
     normalization
         The :class:`~jaxskel.sd06.Normalization` the samples were taken in.
+    settings
+        The options used (``n_axes`` as given, 0 = not given; ``axis_count``).
+    axis_count_source
+        (J,) where each joint's axis count came from: "given" (``n_axes``),
+        "anatomy" (a knee or elbow, one axis: :mod:`jaxskel.sd06._anatomy`) or
+        "data" (the one-or-two-axes test on ``hinge_rms``).
     """
 
     method: str
@@ -784,6 +792,7 @@ class Parameterization:
     noise: np.ndarray
     normalization: Normalization
     settings: Mapping[str, Any]
+    axis_count_source: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -897,6 +906,7 @@ def parameterize_normalized(
     *,
     method: str = "joining",
     n_axes: int | Sequence[int] | Mapping[int, int] | None = None,
+    axis_count: str = "anatomy",
     delta_deg: float = 15.0,
     cell: float = 0.05,
     max_groups: int = 32,
@@ -931,7 +941,12 @@ def parameterize_normalized(
     n_frames = norm.n_frames
     if n_frames < 3:
         raise InputError(f"parameterisation needs a motion of several frames, got {n_frames}")
-    given = _n_axes_array(n_axes, norm.n_joints)
+    if axis_count not in AXIS_COUNTS:
+        raise InputError(f"axis_count must be one of {AXIS_COUNTS}, got {axis_count!r}")
+    user_given = _n_axes_array(n_axes, norm.n_joints)
+    hinge = limb_hinges(norm) if axis_count == "anatomy" else np.zeros(norm.n_joints, bool)
+    given = np.where((user_given == 0) & hinge, 1, user_given)
+    source = np.where(user_given > 0, "given", np.where(hinge, "anatomy", "data"))
     if (not 0.5 <= float(purity) < 1.0 or not float(window_s) > 0 or not float(main_s) > 0
             or int(min_calibration_frames) < 3):
         raise InputError(
@@ -1052,10 +1067,12 @@ def parameterize_normalized(
         calibration_source="automatic" if auto else ("all" if every else "given"),
         noise=out["noise"],
         normalization=norm,
+        axis_count_source=source,
         settings={
             **filter_options,
             **axes_options,
-            "n_axes": given.tolist(),
+            "n_axes": user_given.tolist(),
+            "axis_count": axis_count,
             "min_extent_deg": float(min_extent_deg),
         },
     )
@@ -1093,6 +1110,7 @@ def _with_calibration_trial(
     norm = normalize_arrays(
         cat[0], skeleton_arrays["edges"], cat[1], root=skeleton_arrays["root"], up_axis=up_axis,
         segment_translations=cat_t, calibration=mask, facing=facing, leaf_axes=skeleton_arrays.get("leaf_axes"),
+        leaf_lengths=skeleton_arrays.get("leaf_lengths"),
     )
     first = np.zeros(n_cal + n_mot, bool)
     first[n_cal] = True
@@ -1135,8 +1153,9 @@ def parameterize(
     method
         "joining" (the paper's direction joining), or the baselines "pca" / "em".
     n_axes
-        Movement axes per joint: None (decide from the data), 1 or 2 for all, a
-        sequence per joint or a mapping joint -> 1/2 (0 = decide).
+        Movement axes per joint: None (decide), 1 or 2 for all, a sequence per
+        joint or a mapping joint -> 1/2 (0 = decide). What is not given is decided
+        by ``axis_count`` (an option below).
     calibration
         Which frames define the default pose, the axes and the axis count:
         None or "auto" (the default: each joint's main-movement frames, found as
@@ -1152,7 +1171,11 @@ def parameterize(
         normalisation parameterize makes (``normalization=None``): see
         :func:`~jaxskel.sd06.normalize`; by default the body tells front from back.
     **options
-        ``delta_deg`` (15, direction similarity), ``cell`` (0.05, stratification
+        ``axis_count`` ("anatomy", the default: the knees and elbows, found from
+        the skeleton's shape, get the one axis of a hinge, as the paper takes the
+        degrees of freedom from the anatomy, and every other joint's count comes
+        from the data; "data": every joint's count from the data; see
+        :mod:`jaxskel.sd06._anatomy`), ``delta_deg`` (15, direction similarity), ``cell`` (0.05, stratification
         chord on the unit sphere), ``max_groups`` (32, largest groups clustered), ``n_bins`` (100, speed
         histogram), ``min_prominence`` (0.05 of the tallest bar), ``low_speed_fraction``
         (0.2), ``hinge_tolerance_deg`` (4, one axis when the movement frames' relative
@@ -1172,7 +1195,8 @@ def parameterize(
             if missing:
                 raise InputError(f"{type(obj).__name__} has no {', '.join(missing)}")
         arrays = (motion.joint_positions, motion.rotations, getattr(motion, "segment_translations", None))
-        skel = {"edges": skeleton.edges, "root": int(skeleton.root), "leaf_axes": skeleton_leaf_axes(skeleton)}
+        skel = {"edges": skeleton.edges, "root": int(skeleton.root), "leaf_axes": skeleton_leaf_axes(skeleton),
+                "leaf_lengths": skeleton_leaf_lengths(skeleton)}
         return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes, facing)
     if normalization is None:
         normalization = normalize(skeleton, motion, up_axis=up_axis, calibration=calibration, facing=facing)
@@ -1225,7 +1249,8 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
     ``movement`` (F, J) bool, ``speed`` (F, J), ``speed_threshold`` (J,),
     ``residual`` (F, J) radians, ``axis_rms`` (J,), ``exercised`` (J,), ``steps`` (J,),
     ``converged`` (J,), ``calibration`` (F, J) bool (the frames each joint's axes
-    came from), ``noise`` (J,) radians. Attributes: ``method``,
+    came from), ``noise`` (J,) radians, ``hinge_rms`` (J,) radians, ``axis_count_source``
+    (J,) strings ("given", "anatomy", "data"). Attributes: ``method``,
     ``calibration_source`` and the settings.
     """
     from ..io import put as _put
@@ -1248,8 +1273,11 @@ def write_parameters(group: Any, parameterization: Parameterization) -> None:
         "converged",
         "calibration",
         "noise",
+        "hinge_rms",
     ):
         _put(group, name, np.asarray(getattr(p, name)))
+    if p.axis_count_source is not None:
+        _put(group, "axis_count_source", np.asarray(p.axis_count_source))
     group.attrs["method"] = p.method
     group.attrs["calibration_source"] = p.calibration_source
     group.attrs["angle_units"] = "rad"
