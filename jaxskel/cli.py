@@ -32,6 +32,7 @@ from ._runtime.compile_cache import enable_compile_cache
 from ._runtime.own_process import own_process
 from .pipeline._options import Choice, FitOptions, SettingInfo
 from .pipeline._track import TRACK_GROUPS, track_settings
+from .sd06._anatomy import AXIS_COUNTS
 
 __all__ = ["main"]
 
@@ -143,6 +144,10 @@ def _parser() -> argparse.ArgumentParser:
         sd06.add_argument("--facing", choices=UP_AXES_CHOICES, default=None, metavar="AXIS",
                           help="the lab axis the subject faces in the default pose (x, y, z, -x, ...; write "
                           "--facing=-x), where the body itself (feet, knees, walking) does not tell front from back")
+        sd06.add_argument("--axis-count", choices=AXIS_COUNTS, default=None,
+                          help="where a joint's axis count comes from: 'anatomy' (the default: knees and elbows, "
+                          "found from the skeleton's shape, one axis; the others from the data) or 'data' (every "
+                          "joint from the data)")
         sp.add_argument("--overwrite", action="store_true", help="replace existing output files")
         sp.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
@@ -381,7 +386,8 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     window, calibration_trial = getattr(args, "calibration", None), getattr(args, "calibration_trial", None)
     plot_angles = getattr(args, "plot_angles", None)
     given = [flag for flag, value in (("--calibration", window), ("--calibration-trial", calibration_trial),
-                                      ("--facing", getattr(args, "facing", None)), ("--plot-angles", plot_angles))
+                                      ("--facing", getattr(args, "facing", None)), ("--plot-angles", plot_angles),
+                                      ("--axis-count", getattr(args, "axis_count", None)))
              if value is not None]
     if given and not args.parameterize:
         raise jaxskel.InputError(f"{', '.join(given)} set(s) up --parameterize; add --parameterize")
@@ -422,11 +428,12 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
             if tracked.failed:
                 raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: {tracked[0].error}")
             params = parameterize(result.skeleton, result.motion, up_axis=up, calibration=tracked[0].result.motion,
-                                  facing=args.facing)
+                                  facing=args.facing, axis_count=args.axis_count or AXIS_COUNTS[0])
             norm = params.normalization
         else:
             norm = normalize(result.skeleton, result.motion, up_axis=up, calibration=window, facing=args.facing)
-            params = parameterize(result.skeleton, result.motion, norm, calibration=window)
+            params = parameterize(result.skeleton, result.motion, norm, calibration=window,
+                                  axis_count=args.axis_count or AXIS_COUNTS[0])
         extra_groups = {
             "normalized": lambda g: write_normalized(g, norm),
             "parameters": lambda g: write_parameters(g, params),

@@ -413,6 +413,7 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     assert back.normalized.attrs["handedness"] == "facing"
     # refused before the fit: a setting of --parameterize without it, both calibrations, a bad window
     for extra, text in ((["--calibration", "0:10"], "add --parameterize"),
+                        (["--axis-count", "data"], "add --parameterize"),
                         (["--parameterize", "--calibration", "0:10", "--calibration-trial", str(cal_file)], "not both")):
         assert main(["fit", str(src), "-o", str(tmp_path / "x.h5"), *extra, "--quiet"]) == 2
         assert text in capsys.readouterr().err
@@ -424,6 +425,12 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     assert main(["fit", str(src), "-o", str(out3), "--parameterize", "--plot-angles", str(angles_png), "--quiet"]) == 0
     back = jaxskel.load_result(out3)
     assert back.parameters.attrs["calibration_source"] == "automatic"
+    # knees and elbows (found from the fitted skeleton's shape, the forearms' and shanks' markers
+    # measuring any leaf) get one axis; the others count from the data
+    source = np.asarray(back.parameters.axis_count_source).astype(str)
+    assert (source == "anatomy").sum() == 4 and set(source) == {"anatomy", "data"}
+    assert np.all(np.asarray(back.parameters.n_axes)[source == "anatomy"] == 1)
+    assert back.parameters.attrs["axis_count"] == "anatomy"
     assert angles_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # --plot-angles is checked before the fit, and needs --parameterize; "--calibration all" is read
     assert jaxskel.cli._calibration_window("all") == "all" and jaxskel.cli._calibration_window("AUTO") == "auto"
