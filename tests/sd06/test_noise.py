@@ -6,7 +6,9 @@ least-squares rigid fit per segment, top-down, each child also held at the joint
 centre its parent places), and the axis count is compared with the truth: a
 hinge has one axis; a ball or universal joint two; except the ankle, whose
 second (inversion) axis is the foot's own heel -> toe long axis, so that the
-foot only twists about it: one swing axis, the inversion is the twist.
+foot only twists about it: one swing axis, the inversion is the twist. The count is
+checked with the defaults (knees and elbows one axis from the anatomy) and from the
+noise-corrected test alone (``axis_count="data"``).
 """
 
 from __future__ import annotations
@@ -71,6 +73,10 @@ def test_axis_count_is_right_for_every_joint_at_every_noise_level(noise_mm):
     expected = np.where((kind == "hinge") | ankle, 1, 2)
     detail = dict(zip(BODY.joint_names, np.degrees(param.hinge_rms).round(2).tolist(), strict=True))
     np.testing.assert_array_equal(param.n_axes, expected, err_msg=f"{noise_mm} mm; one-axis RMS (deg) {detail}")
+    np.testing.assert_array_equal(param.axis_count_source == "anatomy", kind == "hinge")
+    # The noise model alone (no anatomy) counts every joint right too, the hinges included.
+    data = parameterize(skeleton, motion, param.normalization, axis_count="data")
+    np.testing.assert_array_equal(data.n_axes, expected, err_msg=f"{noise_mm} mm, axis_count='data'; {detail}")
     # The noise estimate follows the markers: zero without noise, growing with it.
     if noise_mm == 0:
         assert np.degrees(param.noise).max() < 0.1
