@@ -122,8 +122,8 @@ def main() -> None:
     lines = [
         "# SD06 on CMU 02_05: elbows and knees",
         "",
-        "Command: `PYTHONPATH=. python bench/sd06_cmu.py`. References: the joint-centre flexion and the subject's "
-        "CMU skeleton, whose knees are hinges (`bench/sd06_cmu.py` docstring).",
+        "Command: `PYTHONPATH=. python bench/sd06_cmu.py`. References: the joint-centre flexion, the skin markers' "
+        "angle and the subject's CMU skeleton, whose knees are hinges (`bench/sd06_cmu.py` docstring).",
         "",
         "| joint | axis count | axes | off-one-axis RMS (deg) | flexion range, joint centres (deg) | "
         "correlation, first angle vs joint-centre flexion | RMS difference (deg) | second angle's range (deg) | "
@@ -142,7 +142,8 @@ def main() -> None:
         *spins,
         "",
         "With the defaults the knees and elbows are found from the skeleton's shape (`jaxskel.sd06._anatomy`: "
-        "in each limb the joint between its two longest bones, with a mirror partner) and get the hinge's one "
+        "in each limb the joint between its two longest bones, with a partner limb of the same length on the same "
+        "segment) and get the hinge's one "
         "axis, as the paper takes the degrees of freedom from the anatomy ([Kea05]) and only the axes from the "
         "data. Their first angle then follows both references: the elbows the joint-centre flexion to about 1 "
         "degree RMS, the knees the skin markers' angle (thigh - knee - ankle markers) to about 2 degrees about "

@@ -431,6 +431,8 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     assert (source == "anatomy").sum() == 4 and set(source) == {"anatomy", "data"}
     assert np.all(np.asarray(back.parameters.n_axes)[source == "anatomy"] == 1)
     assert back.parameters.attrs["axis_count"] == "anatomy"
+    lengths = np.asarray(back.normalized.leaf_lengths)  # the leaves (feet, hands, head) measured by their markers
+    assert lengths.shape == (n_segments,) and np.sum(lengths > 0.05) >= 5
     assert angles_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # --plot-angles is checked before the fit, and needs --parameterize; "--calibration all" is read
     assert jaxskel.cli._calibration_window("all") == "all" and jaxskel.cli._calibration_window("AUTO") == "auto"

@@ -22,13 +22,19 @@ Definitions, from the tree and the constant bone lengths of the normalised skele
   longest consecutive bones, the largest ``min(in, out)``: the knee (thigh, shank), not
   the ankle (foot); the elbow (upper arm, forearm), not the wrist (hand) nor, where a
   clavicle segment starts the limb, the shoulder.
-* **hinge**: a candidate that has a mirror partner, the candidate of another limb on the
-  other side of the body (along the root limb frame's y axis, the body's left, each
-  joint's mean over the recording lies on the other side of the median joint's) whose two bones
-  together are as long as its own, to within :data:`BONE_MATCH`; partners choose each
-  other (the least relative difference). The sum, not each bone, is compared because a
-  fitted hinge centre may sit a few centimetres up or down its limb. Legs pair with legs
-  and arms with arms; a neck and head chain, which has no partner, never holds a hinge.
+* **hinge**: a candidate that has a mirror partner: the candidate of another limb that
+  hangs from the same branching segment and whose two bones together are as long as its
+  own, to within :data:`BONE_MATCH`; partners choose each other (the least relative
+  difference). The sum, not each bone, is compared because a fitted hinge centre may sit
+  a few centimetres up or down its limb. Legs pair with legs (pelvis) and arms with arms
+  (thorax); a neck and head chain, which has no partner, never holds a hinge. Which side
+  of the body a limb is on is not used: on real takes the limbs' mean positions are
+  asymmetric, and the body frame of a recording without a held default pose does not
+  tell left from right reliably enough. A body with two similar limbs on one side of one
+  segment (not a human) would have them taken as a pair.
+* **not found**: an arm whose hand segment branches (fingers and thumb) ends in a
+  branching segment and so is not a limb; a limb whose leaf length is unknown (no
+  markers) has no out bone there.
 
 A joint found this way gets one axis unless the caller gives its count
 (``axis_count="anatomy"``, the default of :func:`~jaxskel.sd06.parameterize`); with

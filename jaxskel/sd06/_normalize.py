@@ -271,8 +271,8 @@ def leaf_lengths_from_markers(
     out = np.zeros(tree.leaf.size)
     for s in np.flatnonzero(tree.leaf & (tree.proximal >= 0)):
         pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
-        if pts.shape[0]:
-            joint = np.zeros(3) if joints is None else joints[tree.proximal[s], 1]
+        joint = np.zeros(3) if joints is None else joints[tree.proximal[s], 1]
+        if pts.shape[0] and np.all(np.isfinite(joint)):  # else unknown (0)
             out[s] = float(np.max(np.linalg.norm(pts - joint, axis=1)))
     return out
 
@@ -842,7 +842,8 @@ def normalize_arrays(
     lengths = None if leaf_lengths is None else np.asarray(leaf_lengths, dtype=float)
     if lengths is not None and (lengths.shape != (n_joints + 1,) or not np.all(np.isfinite(lengths) & (lengths >= 0))):
         raise InputError(
-            f"leaf_lengths must be finite metres >= 0, shape ({n_joints + 1},) (one per segment), got {lengths.shape}"
+            f"leaf_lengths must be finite metres >= 0, one per segment: shape ({n_joints + 1},), got shape "
+            f"{lengths.shape} with {int(np.sum(~(np.isfinite(lengths) & (lengths >= 0))))} bad value(s)"
         )
     own_norm = np.linalg.norm(own, axis=1)
     has_own = (own_norm > 1e-9) & tree.leaf
@@ -1002,7 +1003,7 @@ def write_normalized(group: Any, normalization: Normalization) -> None:
     [plane m^2, ratio, spread m], ``body_frame`` (3, 3), ``up`` (3,),
     ``limb_frames`` (F, S, 3, 3) (columns are the axes), ``limb_origins`` (F, S, 3),
     ``limb_frames_local`` (S, 3, 3), ``main_axis`` (S,), ``main_sign`` (S,),
-    ``joint_offsets`` (J, 2, 3) and, when known, ``origins_local`` (S, 3).
+    ``joint_offsets`` (J, 2, 3) and, when known, ``origins_local`` (S, 3) and ``leaf_lengths`` (S,).
     Attributes: the cost ``weights`` and ``scale``, ``candidate_tolerance``, ``root``, ``convention``.
     """
     from ..io import put as _put
@@ -1025,6 +1026,8 @@ def write_normalized(group: Any, normalization: Normalization) -> None:
         _put(group, name, np.asarray(getattr(n, name)))
     if n.origins_local is not None:
         _put(group, "origins_local", n.origins_local)
+    if n.leaf_lengths is not None:
+        _put(group, "leaf_lengths", n.leaf_lengths)
     for key, value in n.weights.items():
         group.attrs[f"weight_{key}"] = float(value)
     group.attrs["scale"] = n.scale

@@ -20,7 +20,10 @@ child's long axis swings about one fixed axis (any other rotation only twists
 the limb: a foot whose heel -> toe axis is the ankle's inversion axis): the
 off-axis RMS, with the estimated rotation noise removed
 (:func:`_rotation_noise`, :func:`_one_axis_rms`, :func:`_one_swing_axis_rms`),
-stays below ``hinge_tolerance``; else two. ``n_axes`` overrides this per joint.
+stays below ``hinge_tolerance``; else two. By default (``axis_count="anatomy"``) the
+knees and elbows, found from the skeleton's shape (:mod:`jaxskel.sd06._anatomy`),
+take one axis instead, as the paper takes the degrees of freedom from the anatomy;
+``n_axes`` overrides both per joint.
 
 Rest pose: the normalisation's default-pose frame ``d`` (``r = p_j(d)``,
 ``Q_rest = Q_j(d)``), so every angle is 0 in the default pose.
@@ -897,7 +900,7 @@ def _n_axes_array(n_axes: Any, n_joints: int) -> np.ndarray:
         if out.size != n_joints:
             raise InputError(f"n_axes has {out.size} entries for {n_joints} joints")
     if not np.all(np.isin(out, (0, 1, 2))):
-        raise InputError(f"n_axes must be 1 or 2 per joint (0 or None: decide from the data), got {out.tolist()}")
+        raise InputError(f"n_axes must be 1 or 2 per joint (0 or None: decided by axis_count), got {out.tolist()}")
     return out
 
 
@@ -1220,21 +1223,26 @@ def parameterize_arrays(
     segment_translations: Float[Any, "F S 3"] | None = None,
     calibration: Any = None,
     facing: Any = None,
+    leaf_axes: Float[Any, "S 3"] | None = None,
+    leaf_lengths: Float[Any, " S"] | None = None,
     **options: Any,
 ) -> Parameterization:
     """:func:`parameterize` from arrays (normalises first with :func:`~jaxskel.sd06._normalize.normalize_arrays`).
 
     ``calibration`` and ``facing`` as in :func:`parameterize`; a separate calibration recording
     is given as an object with ``joint_positions``, ``rotations`` (and
-    ``segment_translations`` when the motion has them).
+    ``segment_translations`` when the motion has them). ``leaf_axes`` and ``leaf_lengths``
+    (a leaf's own long axis and its length, from its markers) as in ``normalize_arrays``;
+    without ``leaf_lengths`` an elbow whose forearm is a leaf is not found as a hinge.
     """
     if _is_motion(calibration):
-        skel = {"edges": edges, "root": root}
+        skel = {"edges": edges, "root": root, "leaf_axes": leaf_axes, "leaf_lengths": leaf_lengths}
         arrays = (joint_positions, rotations, segment_translations)
         return _with_calibration_trial(calibration, arrays, skel, up_axis, options, method, n_axes, facing)
     norm = normalize_arrays(
         joint_positions, edges, rotations, root=root, up_axis=up_axis, segment_translations=segment_translations,
-        calibration=calibration, rate=options.get("rate"), facing=facing,
+        calibration=calibration, rate=options.get("rate"), facing=facing, leaf_axes=leaf_axes,
+        leaf_lengths=leaf_lengths,
     )
     return parameterize_normalized(norm, method=method, n_axes=n_axes, calibration=calibration, **options)
 
