@@ -18,7 +18,9 @@ They are made unit-free with the recording's scale ``L`` = median over frames of
 ``spread``, and the cost is ``w_plane plane / L^2 + w_ratio ratio + w_spread
 spread / L`` (weights :data:`DEFAULT_POSE_WEIGHTS`, configurable). Standing with
 the arms hanging makes all three terms small; a T-pose has ratio ~1, a crouch is
-not planar, raised arms spread the joints.
+not planar, raised arms spread the joints. A subject lying down is planar and
+elongated too, so only frames whose best-fit plane holds the up axis to within
+:data:`UPRIGHT_TILT` (60 degrees) are searched, when there are any.
 
 The cost only sees joints, so it cannot tell a frame of the held default pose
 from one where only a leaf limb (hand, foot, head: no distal joint) moves, yet
@@ -73,6 +75,7 @@ L_s(d)``; origins follow from the joints of each frame (the same rigid points).
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import warnings
 from collections.abc import Mapping
@@ -344,6 +347,11 @@ def calibration_mask(calibration: Any, n_frames: int, rate: float | None = None)
 
 
 # ------------------------------------------------------------------ core (JAX)
+#: The default pose is sought among frames whose best-fit body plane holds the up axis to
+#: within this angle (radians; 60 degrees): standing, leaning or bowing, not lying (90).
+UPRIGHT_TILT = math.radians(60.0)
+
+
 def default_pose_terms(x: Float[Array, "J 3"]) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]]:
     """``(plane, ratio, spread)`` of one frame's joints and the covariance eigenvectors (ascending)."""
     centred = x - jnp.mean(x, axis=0)
@@ -491,6 +499,12 @@ def _normalize_core(
     # them, the leaves (invisible to the joint-based cost) decide: the frame whose
     # leaves sit closest to their typical posture over the candidates, with the cost
     # as a tie-breaker (it only matters when there are no leaves).
+    # Only frames whose best-fit body plane stands (the up axis within UPRIGHT_TILT of the
+    # plane): a subject lying down is planar and elongated too, but its plane cannot give
+    # the transverse plane. Where no searched frame stands, every searched frame is taken
+    # (and the normalisation reports the lying body plane).
+    standing = jnp.abs(vecs[:, :, 0] @ up) <= jnp.sin(UPRIGHT_TILT)
+    search = jnp.where(jnp.any(valid & search & standing), search & standing, search)
     least = jnp.min(jnp.where(search, cost, jnp.inf))
     candidate = valid & search & (cost <= least + candidate_tolerance)
     # A default pose is held: of the candidates keep the stillest fifth (joint
@@ -974,26 +988,25 @@ def normalize(
     )
 
 
-def skeleton_leaf_lengths(skeleton: Any) -> np.ndarray | None:
-    """:func:`leaf_lengths_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
+def _skeleton_markers(skeleton: Any) -> tuple | None:
+    """``(edges, root, marker_segment, marker_offsets, joint_offsets)`` of a skeleton that has markers, else None."""
     seg = getattr(skeleton, "marker_segment", None)
     off = getattr(skeleton, "marker_offsets", None)
     if seg is None or off is None:
         return None
-    return leaf_lengths_from_markers(
-        skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
-    )
+    return skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
+
+
+def skeleton_leaf_lengths(skeleton: Any) -> np.ndarray | None:
+    """:func:`leaf_lengths_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
+    markers = _skeleton_markers(skeleton)
+    return None if markers is None else leaf_lengths_from_markers(*markers)
 
 
 def skeleton_leaf_axes(skeleton: Any) -> np.ndarray | None:
     """:func:`leaf_axes_from_markers` of a skeleton with ``marker_segment`` and ``marker_offsets``, else None."""
-    seg = getattr(skeleton, "marker_segment", None)
-    off = getattr(skeleton, "marker_offsets", None)
-    if seg is None or off is None:
-        return None
-    return leaf_axes_from_markers(
-        skeleton.edges, int(skeleton.root), seg, off, getattr(skeleton, "joint_offsets", None)
-    )
+    markers = _skeleton_markers(skeleton)
+    return None if markers is None else leaf_axes_from_markers(*markers)
 
 
 def write_normalized(group: Any, normalization: Normalization) -> None:

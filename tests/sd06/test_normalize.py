@@ -244,9 +244,7 @@ def test_bad_input_is_reported(repeated):
         normalize_arrays(rec.joints, np.array([[0, 1]] * 14), rec.quats)
     with pytest.raises(InputError, match="at least 3 joints"):
         normalize_arrays(rec.joints[:, :2], BODY.edges[:2], rec.quats[:, :3])
-    # The up axis lies along the frontal normal: the transverse plane cannot be oriented.
-    with pytest.raises(DegenerateMotionError, match="horizontal"):
-        normalize_arrays(rec.joints, BODY.edges, rec.quats, up_axis=repeated[1][0].body_frame[:, 0])
+    # (a body plane that holds no up axis: test_the_default_pose_is_sought_among_standing_frames)
 
 
 def test_write_normalized_round_trip(repeated, tmp_path):
@@ -261,3 +259,35 @@ def test_write_normalized_round_trip(repeated, tmp_path):
         np.testing.assert_array_equal(g["origins_local"][()], norm.origins_local)
         assert g.attrs["weight_plane"] == norm.weights["plane"]
         assert "columns" in g.attrs["convention"]
+
+
+def _stand_then_lie(lie_only: bool = False):
+    """Standing with the knees bent 15 degrees (1 s), then lying on the back in the exact
+    default pose (2 s): the lying frames are the flatter, the standing ones the upright."""
+    n_stand, n_lie = (0 if lie_only else 30), 60
+    n = n_stand + n_lie
+    angles = [np.zeros((n, k)) for k in (np.asarray(a).shape[0] for a in BODY.joint_axes)]
+    for j, name in enumerate(BODY.joint_names):
+        if "knee" in name:
+            angles[j][:n_stand, 0] = np.radians(15.0)
+    tip = np.concatenate([np.zeros(n_stand), np.full(n_lie, np.pi / 2)])
+    root_rot = rotvec_to_matrix(np.stack([0 * tip, tip, 0 * tip], axis=1))  # about the lateral axis
+    root_trans = np.tile(BODY.rest_translation, (n, 1))
+    joints, quats, _, trans = truth_arrays(BODY, tuple(angles), root_rot, root_trans)
+    return joints, quats, trans, n_stand
+
+
+@pytest.mark.filterwarnings("ignore:front and back")  # the lying-only take: no cue, then the error
+def test_the_default_pose_is_sought_among_standing_frames():
+    """A subject lying down is planar and elongated too; the default pose comes from the
+    frames whose body plane stands, and only where none stands is the lying plane reported."""
+    joints, quats, trans, n_stand = _stand_then_lie()
+    norm = normalize_arrays(joints, BODY.edges, quats, root=BODY.root, segment_translations=trans,
+                            facing=[1.0, 0.0, 0.0])
+    assert norm.default_frame < n_stand
+    assert abs(norm.body_frame[:, 2] @ [0.0, 0.0, 1.0]) > 0.99  # the transverse normal is up
+    # the lying frames alone would win on the cost: flatter, as elongated, as compact
+    assert norm.cost[n_stand:].min() < norm.cost[:n_stand].min()
+    joints, quats, trans, _ = _stand_then_lie(lie_only=True)
+    with pytest.raises(DegenerateMotionError, match="horizontal"):
+        normalize_arrays(joints, BODY.edges, quats, root=BODY.root, segment_translations=trans)

@@ -61,3 +61,17 @@ def test_cmu_elbows_and_knees_are_hinges_that_follow_their_flexion():
         seen = np.isfinite(reference)
         corr = abs(np.corrcoef(param.angles[seen, j, 0], reference[seen])[0, 1])
         assert corr > 0.99, (j, corr)
+
+
+@pytest.mark.parametrize("take", ["KneeltoProne01.c3d", "PronetoRun01.c3d"])
+def test_takes_that_lie_down_normalise_on_a_standing_frame(take):
+    """Both takes have the subject lying prone, a flat and elongated pose that the default-pose
+    cost favours; the default pose is taken among the frames whose body plane stands."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trial = jaxskel.load(DATA.parents[1] / "auto_marker_label" / take)
+        res = jaxskel.fit_skeleton(trial)
+        norm = jaxskel.sd06.normalize(res.skeleton, res.motion, up_axis=trial.up_axis)
+    assert abs(norm.body_frame[:, 0] @ norm.up) < np.sin(np.radians(60.0))  # the frontal normal is not up
+    lying = [f for f in range(norm.n_frames) if norm.cost[f] < norm.cost[norm.default_frame]]
+    assert lying  # a flatter frame exists: the subject lying down
