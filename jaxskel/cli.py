@@ -423,17 +423,18 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         from .sd06 import normalize, parameterize, write_normalized, write_parameters
 
         up = _up(result.trial.up_axis)
+        axis_count = args.axis_count or AXIS_COUNTS[0]
         if calibration_trial is not None:  # posed on the fitted skeleton, as jaxskel track poses a take
             tracked = jaxskel.track(result.skeleton, jaxskel.load(calibration_trial, **_load_kwargs(calibration_trial, args)))
             if tracked.failed:
                 raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: {tracked[0].error}")
             params = parameterize(result.skeleton, result.motion, up_axis=up, calibration=tracked[0].result.motion,
-                                  facing=args.facing, axis_count=args.axis_count or AXIS_COUNTS[0])
+                                  facing=args.facing, axis_count=axis_count)
             norm = params.normalization
         else:
             norm = normalize(result.skeleton, result.motion, up_axis=up, calibration=window, facing=args.facing)
             params = parameterize(result.skeleton, result.motion, norm, calibration=window,
-                                  axis_count=args.axis_count or AXIS_COUNTS[0])
+                                  axis_count=axis_count)
         extra_groups = {
             "normalized": lambda g: write_normalized(g, norm),
             "parameters": lambda g: write_parameters(g, params),

@@ -77,8 +77,9 @@ def nanquantiles_np(a: Float[np.ndarray, "... n"], q: Float[np.ndarray, " Q"]) -
     lo = np.floor(pos).astype(int)
     hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
     t = pos - lo
-    below = np.take_along_axis(np.broadcast_to(ordered, (q.size, *ordered.shape)), lo[..., None], axis=-1)[..., 0]
-    above = np.take_along_axis(np.broadcast_to(ordered, (q.size, *ordered.shape)), hi[..., None], axis=-1)[..., 0]
+    per_q = np.broadcast_to(ordered, (q.size, *ordered.shape))
+    below = np.take_along_axis(per_q, lo[..., None], axis=-1)[..., 0]
+    above = np.take_along_axis(per_q, hi[..., None], axis=-1)[..., 0]
     diff = above - below
     with np.errstate(invalid="ignore"):
         out = np.where(t >= 0.5, above - diff * (1.0 - t), below + diff * t)  # numpy's _lerp

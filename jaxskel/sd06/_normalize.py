@@ -78,7 +78,7 @@ import dataclasses
 import math
 import types
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import jax
@@ -210,6 +210,29 @@ def tree_arrays(edges: Any, root: int) -> TreeArrays:
     )
 
 
+def _leaf_clouds(
+    edges: Any, root: int, marker_segment: Any, marker_offsets: Any, joint_offsets: Any
+) -> tuple[int, Iterator[tuple[int, np.ndarray]]]:
+    """The segment count, and for each leaf with finite markers ``(s, P - j)``: its markers
+    relative to its proximal joint ``j`` (``joint_offsets[., 1]``, zero when not given), in
+    segment coordinates."""
+    tree = tree_arrays(np.asarray(edges), root)
+    seg = np.asarray(marker_segment).reshape(-1)
+    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
+    if seg.shape[0] != off.shape[0]:
+        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
+    joints = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
+    seen = np.all(np.isfinite(off), axis=1)
+
+    def clouds() -> Iterator[tuple[int, np.ndarray]]:
+        for s in np.flatnonzero(tree.leaf & (tree.proximal >= 0)):
+            pts = off[(seg == s) & seen]
+            if pts.shape[0]:
+                yield int(s), pts - (np.zeros(3) if joints is None else joints[tree.proximal[s], 1])
+
+    return tree.leaf.size, clouds()
+
+
 def leaf_axes_from_markers(
     edges: Any, root: int, marker_segment: Any, marker_offsets: Any, joint_offsets: Any = None
 ) -> np.ndarray:
@@ -228,23 +251,12 @@ def leaf_axes_from_markers(
     of non-leaf segments and of leaves without markers are zero (the
     normalisation then uses the parent limb's direction).
     """
-    edges = np.asarray(edges)
-    tree = tree_arrays(edges, root)
-    seg = np.asarray(marker_segment).reshape(-1)
-    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
-    if seg.shape[0] != off.shape[0]:
-        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
-    jo = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
-    out = np.zeros((tree.leaf.size, 3))
-    for s in np.flatnonzero(tree.leaf):
-        pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
-        if pts.shape[0] == 0:
-            continue
-        joint = np.zeros(3) if jo is None else jo[tree.proximal[s], 1]
-        rel = pts - joint
+    n_segments, clouds = _leaf_clouds(edges, root, marker_segment, marker_offsets, joint_offsets)
+    out = np.zeros((n_segments, 3))
+    for s, rel in clouds:
         c = rel.mean(0)
         axis = c
-        if pts.shape[0] >= 2:
+        if rel.shape[0] >= 2:
             vals, vecs = np.linalg.eigh(np.cov(rel.T, bias=True))
             e1 = vecs[:, 2]
             along = rel @ e1
@@ -265,18 +277,11 @@ def leaf_lengths_from_markers(
     ``marker_offsets`` and ``joint_offsets[:, 1]`` (the joint in the child segment) are in
     segment coordinates, so the distance is the same in every frame.
     """
-    tree = tree_arrays(np.asarray(edges), root)
-    seg = np.asarray(marker_segment).reshape(-1)
-    off = np.asarray(marker_offsets, dtype=float).reshape(-1, 3)
-    if seg.shape[0] != off.shape[0]:
-        raise InputError(f"marker_segment ({seg.shape[0]}) and marker_offsets ({off.shape[0]}) differ in length")
-    joints = None if joint_offsets is None else np.asarray(joint_offsets, dtype=float)
-    out = np.zeros(tree.leaf.size)
-    for s in np.flatnonzero(tree.leaf & (tree.proximal >= 0)):
-        pts = off[(seg == s) & np.all(np.isfinite(off), axis=1)]
-        joint = np.zeros(3) if joints is None else joints[tree.proximal[s], 1]
-        if pts.shape[0] and np.all(np.isfinite(joint)):  # else unknown (0)
-            out[s] = float(np.max(np.linalg.norm(pts - joint, axis=1)))
+    n_segments, clouds = _leaf_clouds(edges, root, marker_segment, marker_offsets, joint_offsets)
+    out = np.zeros(n_segments)
+    for s, rel in clouds:
+        if np.all(np.isfinite(rel)):  # else the joint is unknown: length unknown (0)
+            out[s] = float(np.max(np.linalg.norm(rel, axis=1)))
     return out
 
 
