@@ -32,7 +32,7 @@ from ._runtime.compile_cache import enable_compile_cache
 from ._runtime.own_process import own_process
 from .pipeline._options import Choice, FitOptions, SettingInfo
 from .pipeline._track import TRACK_GROUPS, track_settings
-from .sd06._anatomy import AXIS_COUNTS
+from .sd06 import AXIS_COUNTS
 
 __all__ = ["main"]
 

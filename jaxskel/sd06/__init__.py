@@ -10,6 +10,7 @@ from ._parameterize import Parameterization, Pose, parameterize, parameterize_ar
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
+from ._anatomy import AXIS_COUNTS
 from ._normalize import write_normalized
 from ._parameterize import write_parameters
 
