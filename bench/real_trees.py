@@ -10,7 +10,7 @@ compared with ``HDM_bd.asf``.
 
 Usage::
 
-    python bench/real_trees.py                 # all recordings below (~6 min on 2 cores)
+    python bench/real_trees.py                 # all recordings below (~12 min on 2 cores)
     python bench/real_trees.py --only 85_12    # names containing a string
     python bench/real_trees.py --json out.json
     python bench/real_trees.py --markdown docs/bench/real_trees.md
@@ -45,6 +45,11 @@ RECORDINGS = (
     "numediart/85_12.c3d",
     "numediart/HDM_bd_05-01_01_120.c3d",
     "dynamic_clustering_hdm05/HDM_dg_06-03_03_120.c3d",
+    # Vicon Plug-in-Gait (the CMU set's names, ASI/PSI/TIB for WT/SHN)
+    "nimblephysics/squat.c3d",
+    "pycgm/Movement_trial.c3d",
+    "kineticstoolkit/kinematics_tennis_serve.c3d",
+    "kineticstoolkit/kinematics_basket_sprint.c3d",
 )
 ASF = {"HDM_bd_05": "jointlearning_hdm05/HDM_bd.asf", "HDM_dg_06": "dynamic_clustering_hdm05/HDM_dg.asf",
        "cmu_02_05": "timegan_cmu/02.asf"}

@@ -48,10 +48,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ._attachments import core_costs
-from ._pose_check import MISFIT_FACTOR
+from ._pose_check import MISFIT_FACTOR, TIE_Z
 from ._tree import _adjacency, _bfs
 
-__all__ = ["NearTie", "RivalMargin", "near_ties", "rival_edges", "rival_margins", "runner_up"]
+__all__ = ["NearTie", "RivalMargin", "near_ties", "residual_dof", "rival_edges", "rival_margins", "runner_up"]
 
 
 class NearTie(NamedTuple):
@@ -72,10 +72,15 @@ class NearTie(NamedTuple):
     noise: float
 
 
-def rival_edges(cost: np.ndarray, edges: np.ndarray) -> list[tuple[int, int] | None]:
+def rival_edges(
+    cost: np.ndarray, edges: np.ndarray, exclude: Any = ()
+) -> list[tuple[int, int] | None]:
     """For each tree edge, the cheapest other finite pair reconnecting the tree without it
-    (``None`` where no finite pair crosses the cut)."""
-    cost = np.asarray(cost, dtype=float)
+    (``None`` where no finite pair crosses the cut); the pairs in ``exclude`` (an iterable
+    of pairs, either order) are never rivals."""
+    cost = np.array(cost, dtype=float)
+    for a, b in exclude:
+        cost[a, b] = cost[b, a] = np.inf
     n = cost.shape[0]
     edges = np.asarray(edges, dtype=int).reshape(-1, 2)
     out: list[tuple[int, int] | None] = []
@@ -107,17 +112,18 @@ def rival_margins(topology: Any, cost: np.ndarray | None = None) -> list[RivalMa
     """Every tree joint's margin over its rival, in the order of ``topology.edges``, by the
     (S, S) ``cost`` (default the joint costs, ``topology.pair_costs.cost``).
 
-    Left out: joints with no finite rival, no finite positive cost, or whose rival the pose
-    check chose against (:mod:`jaxskel.joints._pose_check`: the poses settled that pair).
+    A pair the pose check took out of the tree (:mod:`jaxskel.joints._pose_check`: the poses
+    settled it) is never a rival; the next cheapest pair across the cut is. Left out:
+    joints with no finite rival or no finite positive cost.
     """
     pc = topology.pair_costs
     if pc is None or not len(topology.edges):
         return []
     weight = np.asarray(pc.cost if cost is None else cost, dtype=float)
-    overruled = {frozenset(e.removed) for e in topology.pose_exchanges}
+    overruled = [e.removed for e in topology.pose_exchanges]
     out = []
-    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(weight, topology.edges))):
-        if rival is None or frozenset(rival) in overruled:
+    for j, ((p, c), rival) in enumerate(zip(topology.edges.tolist(), rival_edges(weight, topology.edges, overruled))):
+        if rival is None:
             continue
         cost_pc, rival_cost = float(weight[p, c]), float(weight[rival])
         if np.isfinite(cost_pc) and cost_pc > 0:
@@ -136,12 +142,17 @@ def runner_up(topology: Any, cost: np.ndarray | None = None) -> RivalMargin | No
     return min(rival_margins(topology, cost), key=lambda m: m.margin, default=None)
 
 
-def _residual_dof(mask: np.ndarray, marker_segment: np.ndarray, a: int, b: int) -> float:
-    k = mask[:, (marker_segment == a) | (marker_segment == b)].sum(axis=1)
-    return float(np.maximum(k - 3, 0).sum())
+def residual_dof(mask: np.ndarray, marker_segment: np.ndarray, n_segments: int) -> np.ndarray:
+    """(S, S) residual degrees of freedom of every pair's joint cost on the frames of
+    ``mask`` (F, M): ``d = sum_t max(K_t - 3, 0)``, ``K_t`` the pair's markers seen in frame
+    ``t`` (module docstring)."""
+    seg = np.asarray(marker_segment)
+    onehot = (seg[:, None] == np.arange(n_segments)[None]).astype(float)  # (M, S); left-out markers: -1
+    seen = np.asarray(mask, dtype=float) @ onehot  # (F, S)
+    return np.maximum(seen[:, :, None] + seen[:, None, :] - 3.0, 0.0).sum(axis=0)
 
 
-def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -> list[NearTie]:
+def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = TIE_Z) -> list[NearTie]:
     """Tree joints whose margin over their rival is within ``z`` standard errors of the
     costs' sampling noise (module docstring), in the order of ``topology.edges``.
 
@@ -151,14 +162,14 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = 2.0) -
     if pc is None or not len(topology.edges):
         return []
     mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
-    seg = np.asarray(segmentation.marker_segment)
+    dof = residual_dof(mask, segmentation.marker_segment, segmentation.n_segments)
     out = []
     # on the core's costs: a one-marker attachment neither has a near tie nor is one
     misfit = getattr(topology, "fixed_misfit", None)
     for m in rival_margins(topology, core_costs(pc, segmentation)):
         if misfit is not None and misfit[m.rival] > MISFIT_FACTOR * misfit[m.edge]:
             continue  # the poses settle it: a centre fixed in both fits the tree's pair far better
-        d_joint, d_rival = _residual_dof(mask, seg, *m.edge), _residual_dof(mask, seg, *m.rival)
+        d_joint, d_rival = dof[m.edge], dof[m.rival]
         if d_joint <= 0 or d_rival <= 0:
             continue
         noise = z * float(np.sqrt(2.0 / d_joint + 2.0 / d_rival))

@@ -44,6 +44,18 @@ one-marker attachments (:mod:`jaxskel.joints._attachments`) take no part. Exchan
 labelled ``test="sphere"``. Its effect on synthetic and real trees is measured in
 docs/bench/sweep_bodies.md and docs/bench/real_trees.md.
 
+The factor of two is a margin for joints the costs chose clearly. Where they did not, a
+third pass lets the poses decide with less: a tree edge between posed segments whose
+rival across the cut is a *near tie* (its cost within the costs' sampling noise,
+:mod:`jaxskel.joints._near_ties`) is exchanged for the near tie of lowest fixed-centre
+misfit when that misfit is lower by ``TIE_Z`` (2) standard errors (:func:`misfit_drop_z`:
+the per-frame difference of the two pairs' errors, its error from the means of
+``MISFIT_BLOCKS`` stretches of time, whose frames are correlated). Exchanges are
+labelled ``test="near_tie"``. (PronetoRun01, running: the thighs turn about nearly one
+axis, so L thigh-R thigh cost 7 % less than the pelvis-R thigh hip, but its misfit is
+1.97x the hip's, 3.2 standard errors; head-R upper arm against thorax-R upper arm,
+1.34x but 1.3 standard errors, stays, a near tie the summary names.)
+
 Why a margin, and not simply a spanning tree of the misfit: where two segments barely
 turn against each other, any point is nearly fixed in both and the misfit is small
 whatever the joint: segments that move alike (both thighs in a symmetric squat) fit
@@ -63,13 +75,19 @@ import numpy as np
 from ._tree import _adjacency, _bfs
 
 __all__ = [
-    "MISFIT_FACTOR", "PoseExchange", "segment_poses", "fixed_centre_misfit", "sphere_misfit", "pose_checked_edges",
+    "MISFIT_FACTOR", "PoseExchange", "segment_poses", "fixed_centre_errors", "fixed_centre_misfit", "misfit_drop_z",
+    "misfit_from_errors", "sphere_misfit", "pose_checked_edges",
 ]
 
 #: The poses overrule the joint costs only where the rival's misfit is below the tree
 #: edge's divided by this: the factor by which jaxskel calls a misfit changed (a centre's
 #: resolution is the distance over which its misfit doubles, :mod:`jaxskel.joints._determination`).
 MISFIT_FACTOR = 2.0
+#: Standard errors of the costs' sampling noise within which a rival is a near tie
+#: (:func:`jaxskel.joints._near_ties.near_ties`' default ``z``).
+TIE_Z = 2.0
+#: Stretches of time the near-tie pass's standard error is read from (:func:`misfit_drop_z`).
+MISFIT_BLOCKS = 10
 
 
 class PoseExchange(NamedTuple):
@@ -160,6 +178,44 @@ def fixed_centre_misfit(
     than three non-collinear markers) or fewer than ``min_frames`` of those frames pose
     both, and on the diagonal.
     """
+    return misfit_from_errors(*fixed_centre_errors(x, mask, marker_segment, n_segments, frames, poses=poses),
+                              min_frames)
+
+
+def misfit_from_errors(errors: np.ndarray, both: np.ndarray, min_frames: int) -> np.ndarray:
+    """(S, S) :func:`fixed_centre_misfit` from the per-frame :func:`fixed_centre_errors`."""
+    n = both.sum(axis=0)
+    misfit = np.einsum("fab,fab->ab", both, errors) / np.maximum(n, 1.0)
+    misfit = np.where((n >= min_frames) & ~np.eye(n.shape[0], dtype=bool), misfit, np.inf)
+    return np.minimum(misfit, misfit.T)  # symmetric up to rounding
+
+
+def misfit_drop_z(errors: np.ndarray, both: np.ndarray, edge: tuple[int, int], rival: tuple[int, int],
+                  blocks: int = MISFIT_BLOCKS) -> float:
+    """How many standard errors the fixed-centre misfit of ``rival`` lies below ``edge``'s.
+
+    The paired difference ``e_f = errors[f, edge] - errors[f, rival]`` over the frames that
+    pose all the segments of both, whose mean is the misfits' difference; its standard
+    error from ``blocks`` contiguous stretches of time (batch means: the frames of a
+    stretch are correlated, the stretches nearly not), ``std(block means) / sqrt(blocks)``.
+    0 where fewer than two frames per block pose both pairs.
+    """
+    seen = (both[:, edge[0], edge[1]] > 0) & (both[:, rival[0], rival[1]] > 0)
+    diff = (errors[:, edge[0], edge[1]] - errors[:, rival[0], rival[1]])[seen]
+    if len(diff) < 2 * blocks:
+        return 0.0
+    means = np.array([part.mean() for part in np.array_split(diff, blocks)])
+    spread = means.std(ddof=1) / np.sqrt(blocks)
+    return float(diff.mean() / spread) if spread > 0 else float(np.sign(diff.mean()) * np.inf)
+
+
+def fixed_centre_errors(
+    x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray,
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, what :func:`fixed_centre_misfit` averages: ``errors`` (F, S, S), the squared
+    distance (m^2) between where the two segments put the pair's best fixed centre, and
+    ``both`` (F, S, S), 1.0 where both segments are posed in that frame of ``frames``."""
     rot, t, posed = poses if poses is not None else segment_poses(x, mask, marker_segment, n_segments, frames)
     w = posed.astype(float)  # (F, S)
     n = np.einsum("fa,fb->ab", w, w)
@@ -182,14 +238,13 @@ def fixed_centre_misfit(
     world = np.einsum("faji,abj->fabi", rot, centres[..., :3]) - np.einsum("faji,faj->fai", rot, t)[:, :, None]
     other = np.einsum("fbji,abj->fabi", rot, centres[..., 3:]) - np.einsum("fbji,fbj->fbi", rot, t)[:, None]
     both = w[:, :, None] * w[:, None, :]
-    misfit = np.einsum("fab,fabi->ab", both, (world - other) ** 2) / np.maximum(n, 1.0)
-    misfit = np.where((n >= min_frames) & ~np.eye(s, dtype=bool), misfit, np.inf)
-    return np.minimum(misfit, misfit.T)  # symmetric up to rounding
+    return np.einsum("fabi,fabi->fab", world - other, world - other), both
 
 
 def pose_checked_edges(
     edges: np.ndarray, misfit: np.ndarray, cost: np.ndarray, *, factor: float = MISFIT_FACTOR,
-    judged: np.ndarray | None = None, test: str = "fixed",
+    judged: np.ndarray | None = None, test: str = "fixed", tie_noise: np.ndarray | None = None,
+    errors: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, tuple[PoseExchange, ...]]:
     """The MST ``edges`` (E, 2) with the joints the poses reject exchanged (module docstring).
 
@@ -198,6 +253,15 @@ def pose_checked_edges(
     where that pair's misfit is below the edge's divided by ``factor``; the worst edge
     first, until none is. Returns the undirected edges (sorted) and the exchanges made,
     labelled ``test``.
+
+    With ``tie_noise`` (S, S), the squared relative sampling error of each pair's cost
+    (``2 / d``, ``inf`` where ``d`` is 0: :func:`jaxskel.joints._near_ties.residual_dof`), only the pairs whose cost
+    the edge's does not beat by more than the costs' sampling noise take part:
+    ``cost[r] / cost[e] - 1 < TIE_Z * sqrt(tie_noise[e] + tie_noise[r])``, the near ties
+    of :mod:`jaxskel.joints._near_ties`, and the lowest-misfit one replaces the edge where
+    its misfit is lower by ``TIE_Z`` standard errors (:func:`misfit_drop_z` on ``errors``,
+    the per-frame :func:`fixed_centre_errors`): where the costs cannot tell the two joints
+    apart, the poses decide, if they can.
     """
     tree = [tuple(sorted(map(int, e))) for e in np.asarray(edges, dtype=int).reshape(-1, 2)]
     n = misfit.shape[0]
@@ -217,9 +281,15 @@ def pose_checked_edges(
             side_b[list(_bfs(adj, e[1])[0])] = True
             crossing = np.where(side_a[:, None] & side_b[None, :], usable, np.inf)
             crossing[e[0], e[1]] = np.inf
+            if tie_noise is not None:  # only the rivals the costs cannot tell from the edge
+                noise = tie_noise[e] + tie_noise
+                tie = np.isfinite(noise) & (cost / cost[e] - 1.0 < TIE_Z * np.sqrt(noise))
+                crossing = np.where(tie, crossing, np.inf)
             a, b = np.unravel_index(np.argmin(crossing), crossing.shape)
-            if crossing[a, b] * factor < judged_misfit[e]:
-                new = tuple(sorted((int(a), int(b))))
+            new = tuple(sorted((int(a), int(b))))
+            if crossing[a, b] * factor < judged_misfit[e] and (
+                errors is None or misfit_drop_z(*errors, e, new) > TIE_Z
+            ):
                 tree[tree.index(e)] = new
                 exchanges.append(PoseExchange(e, new, (float(judged_misfit[e]), float(misfit[new])),
                                               (float(cost[e]), float(cost[new])), test))

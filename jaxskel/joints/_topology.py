@@ -49,9 +49,11 @@ from ..segment import Segmentation
 from ._attachments import Attachment, attachment_tree
 from ._cost import _settings, _solve_batch
 from ._cost_init import algebraic_start, consistency_start_batched
+from ._near_ties import residual_dof
 from ._pose_check import (
     PoseExchange,
-    fixed_centre_misfit,
+    fixed_centre_errors,
+    misfit_from_errors,
     pose_checked_edges,
     segment_poses,
     sphere_misfit,
@@ -683,12 +685,19 @@ def tree_problem(
         )
     x, mask = trial.to_arrays()
     poses = segment_poses(x, mask, seg, s, pair_costs.frames)
-    misfit = fixed_centre_misfit(x, mask, seg, s, pair_costs.frames, MIN_PAIR_FRAMES, poses=poses)
+    errors = fixed_centre_errors(x, mask, seg, s, pair_costs.frames, poses=poses)
+    misfit = misfit_from_errors(*errors, MIN_PAIR_FRAMES)
     exchanges: tuple[PoseExchange, ...] = ()
     if pose_check:
         undirected, exchanges = pose_checked_edges(undirected, misfit, pair_costs.cost)
         sphere, judged = _sphere_check_matrices(x, mask, seg, s, pair_costs.frames, poses, attachments)
         undirected, more = pose_checked_edges(undirected, sphere, pair_costs.cost, judged=judged, test="sphere")
+        exchanges += more
+        # near ties: where the costs cannot tell a joint from a rival, the poses decide
+        dof = residual_dof(mask[pair_costs.frames], seg, s)
+        tie_noise = np.where(dof > 0, 2.0 / np.maximum(dof, 1.0), np.inf)
+        undirected, more = pose_checked_edges(undirected, misfit, pair_costs.cost, factor=1.0,
+                                              tie_noise=tie_noise, errors=errors, test="near_tie")
         exchanges += more
     edges, roots = root_tree(s, undirected, None if root is None else int(root), weight=sizes)
     if len(roots) > 1:

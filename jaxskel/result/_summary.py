@@ -175,6 +175,7 @@ def tree_lines(topology: Any, names: Sequence[str], settings: Mapping[str, Any],
         f"  runner-up: {names[a]}-{names[b]} instead of {names[p]}-{names[c]}, MST weight {100 * best.margin:+.1f} % "
         f"({1e6 * best.rival_cost:.3f} against {1e6 * best.cost:.3f} mm^2): the smallest margin of any joint over "
         "the cheapest other pair across its cut"
+        + (" (below zero: the pose check jointed the dearer pair)" if best.margin < 0 else "")
     )
     return lines
 
@@ -242,6 +243,7 @@ def pose_exchange_text(exchange: Any, names: Sequence[str]) -> str:
     how = {  # PoseExchange.test
         "fixed": "a centre fixed in both segments fits",
         "sphere": "one segment's markers about a centre fixed in the other's pose fit",
+        "near_tie": "the joint costs within their sampling noise, a centre fixed in both segments fits",
     }.get(getattr(exchange, "test", "fixed"), "the poses fit")
     return (
         f"pose check: {names[a]}-{names[b]} jointed instead of {names[p]}-{names[c]}: {how} {1e6 * m_added:.1f} "

@@ -9,7 +9,19 @@ from helpers import random_rotation
 from jaxskel import synth
 
 from jaxskel.joints import PoseExchange
-from jaxskel.joints._pose_check import MISFIT_FACTOR, fixed_centre_misfit, pose_checked_edges, segment_poses, sphere_misfit
+from jaxskel.joints._near_ties import residual_dof
+from jaxskel.joints._pose_check import (
+    MISFIT_BLOCKS,
+    MISFIT_FACTOR,
+    TIE_Z,
+    fixed_centre_errors,
+    fixed_centre_misfit,
+    misfit_drop_z,
+    misfit_from_errors,
+    pose_checked_edges,
+    segment_poses,
+    sphere_misfit,
+)
 from jaxskel.joints._topology import MIN_PAIR_FRAMES
 
 # jaxskel's private JAX functions run inside the float64 scope of the public functions
@@ -204,3 +216,94 @@ def test_edges_only_the_sphere_test_can_judge_are_exchanged_with_a_label():
     assert exchanges == (PoseExchange((2, 3), (0, 3), (90.0, 10.0), (1.0, 5.0), "sphere"),)
     judged[2, 3] = judged[3, 2] = np.inf  # not judged: kept whatever its misfit
     assert pose_checked_edges(edges, sphere, cost, judged=judged)[1] == ()
+
+
+def test_misfit_is_the_mean_of_its_per_frame_errors(body):
+    x, mask, truth, frames = body
+    s = truth.n_segments
+    errors, both = fixed_centre_errors(x, mask, truth.marker_segment, s, frames)
+    assert errors.shape == both.shape == (len(frames), s, s)
+    misfit = fixed_centre_misfit(x, mask, truth.marker_segment, s, frames, MIN_PAIR_FRAMES)
+    np.testing.assert_allclose(misfit_from_errors(errors, both, MIN_PAIR_FRAMES), misfit)
+    a, b = map(int, truth.edges[0])
+    np.testing.assert_allclose(errors[both[:, a, b] > 0, a, b].mean(), misfit[a, b], rtol=1e-6)
+
+
+def _paired_errors(edge_series, rival_series):
+    """Per-frame errors of a 3-segment graph: pair (0, 1) the edge, (0, 2) the rival."""
+    f = len(edge_series)
+    errors = np.zeros((f, 3, 3))
+    errors[:, 0, 1] = errors[:, 1, 0] = edge_series
+    errors[:, 0, 2] = errors[:, 2, 0] = rival_series
+    return errors, np.ones((f, 3, 3))
+
+
+def test_misfit_drop_is_measured_in_standard_errors_of_block_means():
+    rng = np.random.default_rng(0)
+    # a constant drop of 1 with independent unit noise: the block means of 30 frames
+    # scatter by sqrt(2/30), so the drop is sqrt(10 * 30 / 2) ~ 12 standard errors
+    edge = 2.0 + rng.standard_normal(300)
+    rival = 1.0 + rng.standard_normal(300)
+    z = misfit_drop_z(*_paired_errors(edge, rival), (0, 1), (0, 2))
+    assert 8.0 < z < 17.0
+    assert misfit_drop_z(*_paired_errors(rival, edge), (0, 1), (0, 2)) == pytest.approx(-z)
+    # the same means, but the difference drifts slowly (correlated frames): the blocks
+    # see it, and the drop is no longer significant although its mean is unchanged
+    drift = 5.0 * np.sin(np.linspace(0, 4 * np.pi, 300, endpoint=False))  # mean 0
+    slow = misfit_drop_z(*_paired_errors(edge + drift, rival), (0, 1), (0, 2))
+    assert abs(slow) < TIE_Z
+    # too few frames posing both pairs to form the blocks: no evidence
+    few = _paired_errors(edge[: 2 * MISFIT_BLOCKS - 1], rival[: 2 * MISFIT_BLOCKS - 1])
+    assert misfit_drop_z(*few, (0, 1), (0, 2)) == 0.0
+    errors, both = _paired_errors(edge, rival)
+    both[::2, 0, 2] = both[::2, 2, 0] = 0.0  # frames without the rival's poses are left out
+    assert misfit_drop_z(errors, both, (0, 1), (0, 2)) == pytest.approx(
+        misfit_drop_z(*_paired_errors(edge[1::2], rival[1::2]), (0, 1), (0, 2)))
+
+
+def test_near_ties_are_decided_by_the_poses_only_where_the_costs_cannot_tell():
+    """Tree 0-1, 1-2; the rival of 1-2 is 0-2. The near-tie pass exchanges 1-2 for 0-2 only
+    where their costs lie within the sampling noise and the rival's misfit is lower by more
+    than TIE_Z standard errors; the factor-of-two pass would not, the misfits being 1.5x apart."""
+    rng = np.random.default_rng(1)
+    f = 400
+    errors = np.zeros((f, 3, 3))
+    for (a, b), level in {(0, 1): 1.0, (1, 2): 3.0, (0, 2): 2.0}.items():
+        errors[:, a, b] = errors[:, b, a] = level + 0.5 * rng.standard_normal(f)
+    both = np.ones((f, 3, 3))
+    misfit = misfit_from_errors(errors, both, 10)
+    cost = np.array([[np.inf, 1.0, 1.05], [1.0, np.inf, 1.0], [1.05, 1.0, np.inf]])
+    edges = np.array([[0, 1], [1, 2]])
+    assert pose_checked_edges(edges, misfit, cost)[1] == ()  # 1.5x: not the factor of two
+    noise = np.full((3, 3), 2.0 / 400)  # 2 / d with d = 400: 2 sqrt(2 * 0.005) = 20 %
+    new, exchanges = pose_checked_edges(edges, misfit, cost, factor=1.0, tie_noise=noise, errors=(errors, both),
+                                        test="near_tie")
+    assert new.tolist() == [[0, 1], [0, 2]]
+    assert [(e.removed, e.added, e.test) for e in exchanges] == [((1, 2), (0, 2), "near_tie")]
+    # a rival the costs tell apart (50 % dearer, beyond the 20 % noise) is not a near tie
+    dear = cost.copy()
+    dear[0, 2] = dear[2, 0] = 1.5
+    assert pose_checked_edges(edges, misfit, dear, factor=1.0, tie_noise=noise, errors=(errors, both))[1] == ()
+    # pairs without residual degrees of freedom (infinite noise) are never near ties
+    assert pose_checked_edges(edges, misfit, cost, factor=1.0, tie_noise=np.full((3, 3), np.inf),
+                              errors=(errors, both))[1] == ()
+    # a lower misfit that the frames do not establish (the difference drifts) changes nothing
+    drifting = errors.copy()
+    drifting[:, 1, 2] = drifting[:, 2, 1] = errors[:, 1, 2] + 5.0 * np.sin(np.linspace(0, 4 * np.pi, f, endpoint=False))
+    drifting_misfit = misfit_from_errors(drifting, both, 10)
+    assert drifting_misfit[1, 2] > drifting_misfit[0, 2]
+    assert pose_checked_edges(edges, drifting_misfit, cost, factor=1.0, tie_noise=noise,
+                              errors=(drifting, both))[1] == ()
+
+
+def test_residual_dof_counts_the_redundant_distances_of_every_pair():
+    """d = sum_t max(K_t - 3, 0) over the frames, K_t the pair's markers seen (a left-out
+    marker, -1, counts for no segment)."""
+    seg = np.array([0, 0, 1, 1, 1, 2, -1])
+    mask = np.ones((5, 7), dtype=bool)
+    mask[0, 2:5] = False  # frame 0: segment 1 unseen
+    dof = residual_dof(mask, seg, 3)
+    assert dof[0, 1] == 4 * 2 + 0  # 5 markers in 4 frames, 2 in frame 0
+    assert dof[1, 2] == 4 * 1 + 0
+    assert dof[0, 2] == 0  # 3 markers: no redundancy
+    assert np.array_equal(dof, dof.T)

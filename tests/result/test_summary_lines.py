@@ -50,7 +50,18 @@ def test_the_runner_up_tree_swaps_the_joint_with_the_smallest_margin_and_the_sum
     ]
     exchange = PoseExchange(removed=(0, 2), added=(1, 2), misfit=(1.0, 0.1), cost=(5.0, 2.0))
     checked = SimpleNamespace(edges=edges, pair_costs=SimpleNamespace(cost=cost), pose_exchanges=(exchange,))
-    assert runner_up(checked).edge == (2, 3)  # 0-2, the rival of 0-1 and 1-2, was overruled: 2-3 -> 1-3
+    # 0-2, the rival of 0-1 and 1-2, was overruled: never a rival, the next cheapest pair across the cut is
+    # (1-2 -> 1-3, +350 %; 0-1 has none left)
+    best = runner_up(checked)
+    assert (best.edge, tuple(sorted(best.rival)), best.margin) == ((1, 2), (1, 3), pytest.approx(3.5))
+    # a joint the pose check placed may cost more than a pair across its cut: a margin below zero, said so
+    # (here 0-2, 5, where 1-2 costs 2: -60 %)
+    dear = SimpleNamespace(edges=np.array([[0, 1], [0, 2]]), pair_costs=SimpleNamespace(cost=cost[:3, :3]),
+                           pose_exchanges=(exchange._replace(removed=(1, 2), added=(0, 2)),))
+    assert runner_up(dear) is None  # 1-2 overruled: no other pair crosses either cut
+    dear.pose_exchanges = ()  # a tree that is not the costs' MST, however it came about
+    (line,) = tree_lines(dear, names[:3], {"pose_check": True})[1:]
+    assert "A-C, MST weight -60.0 %" in line and line.endswith("(below zero: the pose check jointed the dearer pair)")
     lines = tree_lines(checked, names, {"root": 0, "pose_check": True})
     assert lines[0] == (
         "tree: minimum spanning tree of the joint costs, then 1 joint(s) exchanged by the pose check (below); "
