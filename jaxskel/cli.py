@@ -175,6 +175,10 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("--workers", type=int, default=None,
                        help="start a local Dask cluster with this many worker processes (one per core)")
     batch.add_argument("--batch-size", type=int, default=8, help="most trials solved together (default 8)")
+    batch.add_argument("--memory", default="auto", metavar="SIZE",
+                       help="most memory the trials solved together may take, by their estimated peak, e.g. 6GB; "
+                       "a longer trial is solved alone ('auto', default: half the memory available; 'none': "
+                       "--batch-size alone)")
     batch.add_argument("--jobs", type=int, default=2, help="threads for reading/cleaning/writing (default 2)")
     batch.add_argument("--bone", action="append", default=[], metavar="NAME=A,S,B[;A,S,B]",
                        help="tabulate a bone by marker labels: on the segment of S, between its joints with the "
@@ -485,8 +489,9 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 def _fit_batch(args: argparse.Namespace) -> int:
     import jaxskel
 
-    from .pipeline import parse_bone_spec
+    from .pipeline import parse_bone_spec, parse_memory
 
+    memory = parse_memory(args.memory)
     if not args.directory.is_dir():
         raise jaxskel.InputError(f"{args.directory}: not a directory; fit-batch takes a folder of recordings")
     bones = dict(parse_bone_spec(text) for text in args.bone)
@@ -496,7 +501,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
     with _dask_cluster(args) as scheduler:
         batch = jaxskel.fit_batch(
             args.directory, args.outdir, options=options_from_args(args), bones=bones, batch_size=args.batch_size,
-            jobs=args.jobs, scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
+            memory=memory, jobs=args.jobs, scheduler=scheduler, overwrite=args.overwrite, progress=not args.quiet,
             units=args.units, up_axis=args.up_axis,
         )
     if args.plot_bones is not None:

@@ -141,6 +141,10 @@ def test_cli_fit_batch_local_and_errors(trials, tmp_path, capsys):
     assert main(["fit-batch", str(tmp_path / "nowhere"), "-o", str(out), "--quiet"]) == 2
     assert "not a directory" in capsys.readouterr().err
     assert main(["fit-batch", str(src), "-o", str(out), "--quiet", "--bone", "x=a,b"]) == 2
+    # a memory bound that is not a size is refused before any work
+    assert main(["fit-batch", str(src), "-o", str(tmp_path / "m"), "--quiet", "--memory", "lots"]) == 2
+    assert "is not a size" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
 
 
 def test_cli_fit_batch_on_a_local_dask_cluster(trials, tmp_path):
@@ -235,3 +239,37 @@ def test_a_batch_that_overlaps_preparing_solving_and_finishing_finishes(tmp_path
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "statuses ['ok', 'ok', 'ok', 'ok', 'ok', 'ok']" in proc.stdout, proc.stdout
+
+
+def test_a_batch_over_its_memory_bound_is_split_and_fits_the_same(batch, trials, monkeypatch, capsys):
+    """``memory`` bounds the trials solved together by their estimated peak (14 times the
+    positions): with room for the largest trial but not for two, each is solved alone;
+    with room for all, the three go together. The fits do not change. The progress bar
+    counts trials and estimates the time left."""
+    import re
+
+    from jaxskel.pipeline import _local
+    from jaxskel.pipeline._batch_memory import fit_bytes
+
+    sizes = []
+    solve = _local._solve_batch
+
+    def spy(works, *args, **kwargs):
+        sizes.append(len(works))
+        return solve(works, *args, **kwargs)
+
+    monkeypatch.setattr(_local, "_solve_batch", spy)
+    largest = max(fit_bytes(t.n_frames, t.n_markers) for t in trials)
+    split = jaxskel.fit_batch(trials, memory=int(1.2 * largest), progress=True)
+    assert sizes == [1, 1, 1]
+    bar = capsys.readouterr().err
+    assert re.search(r"fit_batch: +\d+%.*\| *[12]/3 \[\d\d:\d\d<\d\d:\d\d", bar), bar  # elapsed<left
+    sizes.clear()
+    together = jaxskel.fit_batch(trials, memory=f"{4 * largest / 2**20:.3f}MB")
+    assert sizes == [3]
+    for a, b, c in zip(split, together, batch[1]):
+        np.testing.assert_array_equal(a.result.edges, c.result.edges)
+        np.testing.assert_allclose(a.result.skeleton.bone_lengths, c.result.skeleton.bone_lengths, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(b.result.skeleton.bone_lengths, c.result.skeleton.bone_lengths, rtol=0, atol=1e-9)
+    with pytest.raises(jaxskel.InputError, match="is not a size"):
+        jaxskel.fit_batch(trials, memory="a lot")

@@ -16,6 +16,7 @@ from ._track import track
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
 from ._batch_io import parse_bone_spec
+from ._batch_memory import parse_memory
 
 __all__ = [
     "BatchResult", "CleanOptions", "FitOptions", "JointOptions", "LabelOptions", "MotionOptions", "PreparedFit",

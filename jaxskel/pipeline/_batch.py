@@ -61,6 +61,7 @@ from ._batch_io import (
     signature,
     write_summary,
 )
+from ._batch_memory import parse_memory
 from ._fit import resolve_options
 from ._options import FitOptions
 from ._local import Item, TrialOutcome, default_devices, failed, run_local
@@ -215,6 +216,7 @@ def fit_batch(
     subjects: Sequence[str] | None = None,
     bones: Mapping[str, Any] | None = None,
     batch_size: int = 8,
+    memory: int | str | None = "auto",
     jobs: int = 2,
     devices: Any = "auto",
     scheduler: Any = None,
@@ -256,6 +258,14 @@ def fit_batch(
         becomes a ``bone:<name>`` column.
     batch_size
         Most trials solved together.
+    memory
+        Most memory the trials solved together may take, by their estimated peak
+        (:func:`jaxskel.pipeline._batch_memory.fit_bytes`: 14 times a trial's positions
+        array), with the trials of earlier batches still being finished: a batch closes
+        early where the next trial would pass it, and a trial over it alone is solved
+        alone. ``"auto"`` (default): half the memory the process can still allocate when
+        the trials start (on each Dask worker, the worker's); a number of bytes or text
+        such as ``"6GB"``; ``None``: ``batch_size`` alone.
     jobs
         Threads for the host-side stages (each of the two pools).
     devices
@@ -292,6 +302,7 @@ def fit_batch(
     check_load_arguments(units, up_axis)
     if int(batch_size) < 1 or int(jobs) < 1:
         raise InputError(f"batch_size and jobs must be >= 1, got {batch_size} and {jobs}")
+    memory = parse_memory(memory)
     if out is not None:
         if out.exists() and not out.is_dir():
             raise InputError(f"{out} exists and is not a folder")
@@ -350,12 +361,12 @@ def fit_batch(
 
             run_distributed(
                 todo, options, scheduler=scheduler, bones=specs, signatures=signatures,
-                batch_size=int(batch_size), on_outcome=on_outcome,
+                batch_size=int(batch_size), memory=memory, on_outcome=on_outcome,
             )
         elif todo:
             run_local(
                 todo, options, bones=specs, signatures=signatures, batch_size=int(batch_size), jobs=int(jobs),
-                devices=default_devices(devices), keep_results=keep, on_outcome=on_outcome,
+                devices=default_devices(devices), keep_results=keep, on_outcome=on_outcome, memory=memory,
             )
     finally:
         if bar is not None:

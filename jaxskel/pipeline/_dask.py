@@ -68,6 +68,7 @@ def _fit_group(
     bones: Mapping[str, Any],
     signatures: Mapping[int, str],
     batch_size: int,
+    memory: int | str | None = "auto",
 ) -> list[tuple[int, dict[str, Any], str, list[tuple[str, str]]]]:
     """Worker task: fit a group of trials in-process; return (index, row, traceback, warnings)
     per trial (the warnings its fit raised, :func:`jaxskel.pipeline._trial_warnings.pack`ed:
@@ -89,6 +90,7 @@ def _fit_group(
     run_local(
         items, options, bones=bones, signatures=signatures, batch_size=batch_size, jobs=2,
         devices=default_devices("auto"), keep_results=False, on_outcome=on_outcome, emit_warnings=False,
+        memory=memory,
     )
     return rows
 
@@ -103,6 +105,7 @@ def run_distributed(
     batch_size: int,
     on_outcome: Callable[[Any, Any], None],
     group_size: int | None = None,
+    memory: int | str | None = "auto",
 ) -> None:
     """Fit ``items`` on a Dask cluster (module docstring); report each trial to ``on_outcome``."""
     from ._local import TrialOutcome, failed
@@ -124,7 +127,8 @@ def run_distributed(
                 for it in group
             ]
             sigs = {it.index: signatures.get(it.index, "") for it in group}
-            fut = client.submit(_fit_group, packed, options, dict(bones), sigs, batch_size, pure=False)
+            fut = client.submit(_fit_group, packed, options, dict(bones), sigs, batch_size, memory,
+                                pure=False)
             futures[fut] = group
         by_index = {it.index: it for it in items}
         for fut in as_completed(list(futures)):

@@ -28,6 +28,7 @@ from ._batch_io import (
     failed_row,
     summary_row,
 )
+from ._batch_memory import fit_bytes, memory_budget
 from ._options import FitOptions
 from ._plan import PreparedFit, StagePlan, moving_frames
 from ._trial_warnings import Caught, TrialWarnings, emit
@@ -256,18 +257,26 @@ def run_local(
     keep_results: bool,
     on_outcome: Callable[[Item, TrialOutcome], None],
     emit_warnings: bool = True,
+    memory: int | str | None = "auto",
 ) -> None:
     """The in-process pipeline (module docstring); reports every trial to ``on_outcome``.
+
+    The trials solved together are at most ``batch_size`` and, but for a trial alone,
+    within ``memory`` (:func:`jaxskel.pipeline._batch_memory.memory_budget`, resolved now)
+    by their estimated peak (:func:`jaxskel.pipeline._batch_memory.fit_bytes`), counted
+    with the trials still being finished (rigid fit, IK, writing) from earlier batches.
 
     Each trial's warnings are caught for it (:mod:`jaxskel.pipeline._trial_warnings`) and
     travel in its outcome (``TrialOutcome.warnings``); with ``emit_warnings`` they are
     also warned again, naming the trial, from this (the calling) thread.
     """
+    budget = memory_budget(memory)
     prep_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-prepare")
     finish_pool = ThreadPoolExecutor(jobs, thread_name_prefix="jaxskel-finish")
     waiting = collections.deque(items)
     preparing: collections.deque[tuple[Item, Future]] = collections.deque()
     finishing: list[Future] = []
+    finishing_bytes: dict[Future, int] = {}  # estimated peak of each trial being finished
     caught = TrialWarnings(records_under=DEVICE_LOCK)
     unsaid: collections.deque[tuple[str, tuple[Caught, ...]]] = collections.deque()
 
@@ -311,10 +320,15 @@ def run_local(
             while preparing:
                 # A full batch (or what is left): while the main thread waits, the lock is free
                 # for the finishing stage of the previous batch and the preparation of this one.
-                ready = []
+                # trials still being finished count against the memory bound too
+                ready, held = [], sum(b for f, b in finishing_bytes.items() if not f.done())
                 while preparing and len(ready) < batch_size:
+                    preparing[0][1].exception()  # wait for it
+                    need = _work_bytes(preparing[0][1])
+                    if ready and budget is not None and held + need > budget:
+                        break  # the next batch takes it: this one would not fit in memory
                     ready.append(preparing.popleft())
-                    ready[-1][1].exception()  # wait for it
+                    held += need
                     top_up()
                 works = []
                 for item, fut in ready:
@@ -334,6 +348,7 @@ def run_local(
                         release_programs_near_map_limit(stacklevel=1)
                     for work in _solve_batch(works, options, devices, fail, lambda item: caught.trial(item.index)):
                         finishing.append(finish_pool.submit(finish, work))
+                        finishing_bytes[finishing[-1]] = fit_bytes(work.prep.trial.n_frames, work.prep.trial.n_markers)
                 say_warnings()
                 # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished
                 while sum(not f.done() for f in finishing) > 2 * jobs:
@@ -345,6 +360,14 @@ def run_local(
             prep_pool.shutdown(wait=True, cancel_futures=True)
             finish_pool.shutdown(wait=True, cancel_futures=True)
             say_warnings()
+
+
+def _work_bytes(future: Future) -> int:
+    """Estimated peak bytes of fitting a prepared trial (0 for one whose preparation failed)."""
+    if future.exception() is not None:
+        return 0
+    trial = future.result().prep.trial
+    return fit_bytes(trial.n_frames, trial.n_markers)
 
 
 def default_devices(devices: Any) -> Any:
