@@ -89,7 +89,8 @@ def main(argv=None) -> None:
         "",
         f"Written {time.strftime('%Y-%m-%d')} on {platform.machine()} ({platform.processor() or 'CPU'}), "
         f"4 noisy synthetic full bodies of {args.duration:g} s, `batch_size=8`; each run in a fresh process, after "
-        "two `fit_skeleton` calls on the first trial (the first compiles). Peak RSS sampled every 20 ms (`bench/memory.py`).",
+        "two `fit_skeleton` calls on the first trial (the first compiles). Peak RSS sampled every 20 ms "
+        "(`bench/memory.py`).",
         "",
         "| memory | trials solved together | RSS before (MB) | peak RSS (MB) | batch adds (MB) | wall s |",
         "|---|---|---|---|---|---|",

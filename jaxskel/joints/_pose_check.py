@@ -255,8 +255,9 @@ def pose_checked_edges(
     labelled ``test``.
 
     With ``tie_noise`` (S, S), the squared relative sampling error of each pair's cost
-    (``2 / d``, ``inf`` where ``d`` is 0: :func:`jaxskel.joints._near_ties.residual_dof`), only the pairs whose cost
-    the edge's does not beat by more than the costs' sampling noise take part:
+    (``2 / d``, ``inf`` where ``d`` is 0: :func:`jaxskel.joints._near_ties.residual_dof`),
+    only the pairs whose cost the edge's does not beat by more than the costs' sampling
+    noise take part:
     ``cost[r] / cost[e] - 1 < TIE_Z * sqrt(tie_noise[e] + tie_noise[r])``, the near ties
     of :mod:`jaxskel.joints._near_ties`, and the lowest-misfit one replaces the edge where
     its misfit is lower by ``TIE_Z`` standard errors (:func:`misfit_drop_z` on ``errors``,
@@ -283,7 +284,8 @@ def pose_checked_edges(
             crossing[e[0], e[1]] = np.inf
             if tie_noise is not None:  # only the rivals the costs cannot tell from the edge
                 noise = tie_noise[e] + tie_noise
-                tie = np.isfinite(noise) & (cost / cost[e] - 1.0 < TIE_Z * np.sqrt(noise))
+                with np.errstate(divide="ignore", invalid="ignore"):  # a free edge (cost 0): no tie
+                    tie = np.isfinite(noise) & (cost / cost[e] - 1.0 < TIE_Z * np.sqrt(noise))
                 crossing = np.where(tie, crossing, np.inf)
             a, b = np.unravel_index(np.argmin(crossing), crossing.shape)
             new = tuple(sorted((int(a), int(b))))
