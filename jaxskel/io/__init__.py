@@ -13,7 +13,7 @@ from ._trial import Trial, rotation_between_axes
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
 from ._atomic import atomic_output, input_sources, refuse_input
-from ._bounds import available_memory, describe_bytes
+from ._bounds import available_memory
 from ._output_check import check_output, check_writable, image_format
 from ._h5_values import put
 from ._load import check_load_arguments

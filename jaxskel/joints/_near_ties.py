@@ -51,7 +51,9 @@ from ._attachments import core_costs
 from ._pose_check import MISFIT_FACTOR, TIE_Z
 from ._tree import _adjacency, _bfs
 
-__all__ = ["NearTie", "RivalMargin", "near_ties", "residual_dof", "rival_edges", "rival_margins", "runner_up"]
+__all__ = [
+    "NearTie", "RivalMargin", "cost_variance", "near_ties", "residual_dof", "rival_edges", "rival_margins", "runner_up",
+]
 
 
 class NearTie(NamedTuple):
@@ -152,6 +154,14 @@ def residual_dof(mask: np.ndarray, marker_segment: np.ndarray, n_segments: int) 
     return np.maximum(seen[:, :, None] + seen[:, None, :] - 3.0, 0.0).sum(axis=0)
 
 
+def cost_variance(dof: np.ndarray) -> np.ndarray:
+    """Squared relative sampling error of joint costs with ``dof`` residual degrees of
+    freedom (:func:`residual_dof`): ``2 / d``, ``inf`` where ``d`` is 0 (no estimate).
+    Two costs are a near tie when ``cost_b / cost_a - 1 < z sqrt(var_a + var_b)``."""
+    dof = np.asarray(dof, dtype=float)
+    return np.where(dof > 0, 2.0 / np.maximum(dof, 1.0), np.inf)
+
+
 def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = TIE_Z) -> list[NearTie]:
     """Tree joints whose margin over their rival is within ``z`` standard errors of the
     costs' sampling noise (module docstring), in the order of ``topology.edges``.
@@ -162,17 +172,16 @@ def near_ties(trial: Any, segmentation: Any, topology: Any, *, z: float = TIE_Z)
     if pc is None or not len(topology.edges):
         return []
     mask = np.asarray(trial.mask)[np.asarray(pc.frames)]
-    dof = residual_dof(mask, segmentation.marker_segment, segmentation.n_segments)
+    var = cost_variance(residual_dof(mask, segmentation.marker_segment, segmentation.n_segments))
     out = []
     # on the core's costs: a one-marker attachment neither has a near tie nor is one
     misfit = getattr(topology, "fixed_misfit", None)
     for m in rival_margins(topology, core_costs(pc, segmentation)):
         if misfit is not None and misfit[m.rival] > MISFIT_FACTOR * misfit[m.edge]:
             continue  # the poses settle it: a centre fixed in both fits the tree's pair far better
-        d_joint, d_rival = dof[m.edge], dof[m.rival]
-        if d_joint <= 0 or d_rival <= 0:
+        if not np.isfinite(var[m.edge] + var[m.rival]):
             continue
-        noise = z * float(np.sqrt(2.0 / d_joint + 2.0 / d_rival))
+        noise = z * float(np.sqrt(var[m.edge] + var[m.rival]))
         if m.margin < noise:
             out.append(NearTie(m.joint, m.edge, m.rival, m.cost, m.rival_cost, m.margin, noise))
     return out

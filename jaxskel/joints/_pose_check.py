@@ -255,7 +255,7 @@ def pose_checked_edges(
     labelled ``test``.
 
     With ``tie_noise`` (S, S), the squared relative sampling error of each pair's cost
-    (``2 / d``, ``inf`` where ``d`` is 0: :func:`jaxskel.joints._near_ties.residual_dof`),
+    (:func:`jaxskel.joints._near_ties.cost_variance`: ``2 / d``, ``inf`` where ``d`` is 0),
     only the pairs whose cost the edge's does not beat by more than the costs' sampling
     noise take part:
     ``cost[r] / cost[e] - 1 < TIE_Z * sqrt(tie_noise[e] + tie_noise[r])``, the near ties

@@ -49,7 +49,7 @@ from ..segment import Segmentation
 from ._attachments import Attachment, attachment_tree
 from ._cost import _settings, _solve_batch
 from ._cost_init import algebraic_start, consistency_start_batched
-from ._near_ties import residual_dof
+from ._near_ties import cost_variance, residual_dof
 from ._pose_check import (
     PoseExchange,
     fixed_centre_errors,
@@ -694,8 +694,7 @@ def tree_problem(
         undirected, more = pose_checked_edges(undirected, sphere, pair_costs.cost, judged=judged, test="sphere")
         exchanges += more
         # near ties: where the costs cannot tell a joint from a rival, the poses decide
-        dof = residual_dof(mask[pair_costs.frames], seg, s)
-        tie_noise = np.where(dof > 0, 2.0 / np.maximum(dof, 1.0), np.inf)
+        tie_noise = cost_variance(residual_dof(mask[pair_costs.frames], seg, s))
         undirected, more = pose_checked_edges(undirected, misfit, pair_costs.cost, factor=1.0,
                                               tie_noise=tie_noise, errors=errors, test="near_tie")
         exchanges += more

@@ -24,7 +24,7 @@ import math
 from typing import Any
 
 from .._errors import InputError
-from ..io import available_memory, describe_bytes
+from ..io import available_memory
 
 __all__ = ["FIT_COPIES", "fit_bytes", "memory_budget", "parse_memory"]
 
@@ -78,7 +78,3 @@ def memory_budget(memory: int | str | None) -> int | None:
         return None if free is None else max(free // 2, 1)
     return memory
 
-
-def budget_text(budget: int | None) -> str:
-    """``"6.0 GB"`` or ``"unbounded"``."""
-    return "unbounded" if budget is None else describe_bytes(budget)

@@ -321,10 +321,11 @@ def run_local(
                 # A full batch (or what is left): while the main thread waits, the lock is free
                 # for the finishing stage of the previous batch and the preparation of this one.
                 # trials still being finished count against the memory bound too
-                ready, held = [], sum(b for f, b in finishing_bytes.items() if not f.done())
+                finishing_bytes = {f: b for f, b in finishing_bytes.items() if not f.done()}
+                ready, held = [], sum(finishing_bytes.values())
                 while preparing and len(ready) < batch_size:
-                    preparing[0][1].exception()  # wait for it
-                    need = _work_bytes(preparing[0][1])
+                    nxt = preparing[0][1]
+                    need = 0 if nxt.exception() is not None else _work_bytes(nxt.result())  # waits for it
                     if ready and budget is not None and held + need > budget:
                         break  # the next batch takes it: this one would not fit in memory
                     ready.append(preparing.popleft())
@@ -348,7 +349,7 @@ def run_local(
                         release_programs_near_map_limit(stacklevel=1)
                     for work in _solve_batch(works, options, devices, fail, lambda item: caught.trial(item.index)):
                         finishing.append(finish_pool.submit(finish, work))
-                        finishing_bytes[finishing[-1]] = fit_bytes(work.prep.trial.n_frames, work.prep.trial.n_markers)
+                        finishing_bytes[finishing[-1]] = _work_bytes(work)
                 say_warnings()
                 # keep memory bounded: at most 2 jobs' worth of trials waiting to be finished
                 while sum(not f.done() for f in finishing) > 2 * jobs:
@@ -362,12 +363,9 @@ def run_local(
             say_warnings()
 
 
-def _work_bytes(future: Future) -> int:
-    """Estimated peak bytes of fitting a prepared trial (0 for one whose preparation failed)."""
-    if future.exception() is not None:
-        return 0
-    trial = future.result().prep.trial
-    return fit_bytes(trial.n_frames, trial.n_markers)
+def _work_bytes(work: _Work) -> int:
+    """Estimated peak bytes of fitting a prepared trial (:func:`jaxskel.pipeline._batch_memory.fit_bytes`)."""
+    return fit_bytes(work.prep.trial.n_frames, work.prep.trial.n_markers)
 
 
 def default_devices(devices: Any) -> Any:
