@@ -50,6 +50,8 @@ RECORDINGS = (
     "pycgm/Movement_trial.c3d",
     "kineticstoolkit/kinematics_tennis_serve.c3d",
     "kineticstoolkit/kinematics_basket_sprint.c3d",
+    # numediart's 68-marker set: four-marker thigh and shank clusters, ISB landmarks
+    "numediart/03_rolling.c3d",
 )
 ASF = {"HDM_bd_05": "jointlearning_hdm05/HDM_bd.asf", "HDM_dg_06": "dynamic_clustering_hdm05/HDM_dg.asf",
        "cmu_02_05": "timegan_cmu/02.asf"}

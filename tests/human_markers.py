@@ -44,6 +44,25 @@ for _s in "LR":
         f"{_s}ASI": "pelvis", f"{_s}PSI": "pelvis", f"{_s}TIB": f"{_s} shank",
     })
 PART["RBAK"] = "thorax"
+# numediart's 68-marker set (03_rolling; every label carries a leading "L"): four-marker
+# thigh and shank clusters, two on each upper arm and forearm, anatomical landmarks
+# (ISB names: epicondyles, styloids, malleoli, metatarsals).
+PART.update({f"L{m}": "head" for m in ("RFHD", "LFHD", "LBHD", "RBHD")})
+PART.update({f"L{m}": "thorax" for m in ("CLAV", "STRN", "CV7", "TV10")})
+for _s in "LR":
+    PART.update({
+        f"L{_s}AC": f"{_s} shoulder", f"L{_s}UA1": f"{_s} upper arm", f"L{_s}UA2": f"{_s} upper arm",
+        f"L{_s}_HLE": f"{_s} upper arm", f"L{_s}_HME": f"{_s} upper arm", f"L{_s}F1": f"{_s} forearm",
+        f"L{_s}F2": f"{_s} forearm", f"L{_s}_RSP": f"{_s} forearm", f"L{_s}_USP": f"{_s} forearm",
+        f"L{_s}_HM1": f"{_s} hand", f"L{_s}_HL5": f"{_s} hand", f"L{_s}_IPS": "pelvis", f"L{_s}_IAS": "pelvis",
+        f"L{_s}_FTC": f"{_s} thigh", f"L{_s}_FLE": f"{_s} thigh", f"L{_s}_FME": f"{_s} thigh",
+        f"L{_s}_FAL": f"{_s} shank", f"L{_s}_TAM": f"{_s} shank", f"L{_s}_FCC": f"{_s} foot",
+        **{f"L{_s}_TH{k}": f"{_s} thigh" for k in range(1, 5)},
+        **{f"L{_s}_SK{k}": f"{_s} shank" for k in range(1, 5)},
+        **{f"L{_s}_FM{k}": f"{_s} foot" for k in (1, 2, 5)},
+    })
+    ON_JOINT |= {f"L{_s}{j}" for j in ("AC", "_HLE", "_HME", "_RSP", "_USP", "_FLE", "_FME", "_FAL", "_TAM")}
+PART["LR-SK1"] = "R shank"  # spelled with a hyphen in the file
 
 ADJACENT: set[frozenset[str]] = {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))}
 for _s in "LR":

@@ -43,9 +43,12 @@ Following the paper:
   the affinity itself calls them unrelated), the count grows by one, up to
   ``max_segments``. The eigengap reads chains of affinity as one cluster: markers placed
   on joints (a knee marker rigid with both thigh and shank) link whole limbs into one
-  group, which the grown count separates. The eigengap's count is kept when no count up
-  to ``max_segments`` is rigid (a marker that moves against every neighbour), or when
-  the first rigid one leaves more single-marker groups.
+  group, which the grown count separates. A knee marker can then go to either side and
+  leave its neighbour's only other marker alone: a lone marker first takes the marker on
+  the joint next to it, one about as rigid with it as with its own group
+  (:func:`_pair_lone_markers`). The eigengap's count is kept when no count up to
+  ``max_segments`` is rigid (a marker that moves against every neighbour), or when the
+  first rigid one still leaves more single-marker groups.
 
 The measurements behind these departures (noise levels, counts on real recordings) are in
 docs/bench/evidence_from_docstrings.md.
@@ -376,6 +379,47 @@ def count_singletons(labels: np.ndarray) -> int:
     return int(np.sum(np.bincount(labels) == 1))
 
 
+def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
+    """Give a one-marker group the marker on the joint next to it, where there is one.
+
+    A grown count separates the groups the eigengap chained together, but a marker placed
+    on a joint (a knee marker, rigid with thigh and shank) can go to either side and leave
+    its neighbour's only other marker alone. Lone marker ``i`` takes marker ``p``, its most
+    rigid partner, from ``p``'s group when
+
+    * ``A_ip <= limit``: the new pair is rigid;
+    * ``p``'s group keeps two markers or more;
+    * ``p`` is about as rigid with ``i`` as with its own group: ``A_ip`` is at most ``ratio``
+      times the median ``A_pj`` over its group mates ``j`` (:data:`MEND_RATIO`, the
+      sampling noise of a ratio of two distance stds, as in :func:`_mend`). A marker of a
+      cluster, far more rigid with its cluster than with anything else, is never taken.
+
+    Lone markers are served from the most rigid pair up; a group that has received or
+    lost a marker is not touched again. Every group stays rigid (``a``: the (M, M) cost,
+    NaN where unobserved).
+    """
+    labels = labels.copy()
+    sizes = np.bincount(labels)
+    off = np.where(np.isnan(a), np.inf, a)
+    np.fill_diagonal(off, np.inf)
+    lone = np.flatnonzero(sizes[labels] == 1)
+    touched: set[int] = set()
+    for i in sorted(lone, key=lambda i: off[i].min()):
+        p = int(np.argmin(off[i]))
+        own, theirs = int(labels[i]), int(labels[p])
+        mates = np.flatnonzero(labels == theirs)
+        mates = mates[mates != p]
+        if not (off[i, p] <= limit and len(mates) >= 2) or {own, theirs} & touched:
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            with_mates = np.nanmedian(a[p, mates])
+        if off[i, p] <= ratio * with_mates:
+            labels[p] = own
+            touched |= {own, theirs}
+    return labels
+
+
 #: The lower and upper quartiles and the largest value of a marker's costs to a group (:func:`_mend`).
 _MEND_QUANTILES = np.array([0.25, 0.75, 1.0])
 
@@ -523,7 +567,8 @@ def segment_markers(
         With ``n_segments=None``: the count grows from the eigengap's choice until no
         group holds two markers with ``A_ij > rigid_ratio * sigma`` (kept at the
         eigengap's choice when no count up to ``max_segments`` achieves that, or when
-        the first that does leaves more single-marker groups). When every pair of
+        the first that does leaves more single-marker groups once each lone marker has
+        taken the marker on the joint next to it, if any). When every pair of
         markers is within that limit the count is 1 (one rigid body: the motion
         exercises no joint, and :func:`jaxskel.fit_skeleton` says so).
         ``None``: the eigengap alone (the paper).
@@ -631,12 +676,15 @@ def segment_markers(
                 if _least_rigidity(grown[0], a_observed) <= limit:
                     # A new single-marker group has no partner for a joint among its
                     # neighbours when they carry few markers (a joint needs 4 in all):
-                    # it is then jointed anywhere. Keep the eigengap's count then, and
-                    # report this one. (An example, and accepting a lone marker whose most
-                    # rigid partner's group is large enough for a joint, tried and not
-                    # adopted: docs/bench/evidence_from_docstrings.md.)
-                    if count_singletons(grown[0]) <= count_singletons(labels):
-                        rule, (labels, scores, best) = "rigid", grown
+                    # it is then jointed anywhere. A lone marker first takes the marker on
+                    # the joint next to it (_pair_lone_markers); if lone markers are still
+                    # added, keep the eigengap's count, and report this one. (An example,
+                    # and accepting a lone marker whose most rigid partner's group is large
+                    # enough for a joint, tried and not adopted:
+                    # docs/bench/evidence_from_docstrings.md.)
+                    paired = _pair_lone_markers(grown[0], a_observed, limit)
+                    if count_singletons(paired) <= count_singletons(labels):
+                        rule, labels, scores, best = "rigid", _canonical(paired), grown[1], grown[2]
                     else:
                         rigid_count = n
                     break

@@ -17,7 +17,7 @@ from helpers import (
 import jaxskel
 from jaxskel import synth
 from jaxskel.segment import distance_std
-from jaxskel.segment._spectral import _mend, _score, white_noise
+from jaxskel.segment._spectral import _mend, _pair_lone_markers, _score, white_noise
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -244,6 +244,44 @@ def test_a_rigid_count_that_leaves_a_marker_alone_is_reported_not_taken():
     # nothing to report where the count is given, or the check is off
     assert jaxskel.segment.segment_markers(trial, 3, sigma=0.006).rigid_count == 0
     assert jaxskel.segment.segment_markers(trial, sigma=0.006, rigid_ratio=None).rigid_count == 0
+
+
+def _knee_costs(knee_to_thigh: float, knee_to_shank: float) -> np.ndarray:
+    """Distance stds (m) of a thigh marker T (0), a knee marker K (1) and shank markers S1, S2
+    (2, 3): T moves against the shank by 30 mm, S1-S2 are a cluster (1 mm)."""
+    a = np.full((4, 4), 0.030)
+    a[0, 1] = a[1, 0] = knee_to_thigh
+    a[1, 2:] = a[2:, 1] = knee_to_shank
+    a[2, 3] = a[3, 2] = 0.001
+    np.fill_diagonal(a, 0.0)
+    return a
+
+
+def test_a_lone_marker_takes_the_marker_on_the_joint_next_to_it():
+    """A grown count put the knee marker K with the shank and left the thigh marker T
+    alone. K is about as rigid with T (10 mm) as with the shank (8 mm): it goes to T, and
+    both groups stay rigid (limit 25 mm)."""
+    alone = np.array([0, 1, 1, 1])
+    paired = _pair_lone_markers(alone, _knee_costs(0.010, 0.008), 0.025)
+    np.testing.assert_array_equal(paired, [0, 0, 1, 1])
+    # 1.5 x its rigidity with its group is the edge (the mend's ratio): 12 mm is taken, 12.5 mm not
+    np.testing.assert_array_equal(_pair_lone_markers(alone, _knee_costs(0.0119, 0.008), 0.025), [0, 0, 1, 1])
+    np.testing.assert_array_equal(_pair_lone_markers(alone, _knee_costs(0.0125, 0.008), 0.025), alone)
+
+
+def test_a_lone_marker_never_takes_a_cluster_marker_or_a_non_rigid_partner():
+    alone = np.array([0, 1, 1, 1])
+    # K far more rigid with its cluster (1 mm) than with T (6 mm): a cluster marker stays
+    np.testing.assert_array_equal(_pair_lone_markers(alone, _knee_costs(0.006, 0.001), 0.025), alone)
+    # the pair would not be rigid (30 mm over the 25 mm limit)
+    np.testing.assert_array_equal(_pair_lone_markers(alone, _knee_costs(0.030, 0.025), 0.025), alone)
+    # the donor would be left with one marker
+    two = np.array([0, 1, 1, 2])
+    np.testing.assert_array_equal(_pair_lone_markers(two, _knee_costs(0.010, 0.008), 0.025), two)
+    # unobserved pairs (NaN) are no evidence
+    a = _knee_costs(0.010, 0.008)
+    a[0, 1] = a[1, 0] = np.nan
+    np.testing.assert_array_equal(_pair_lone_markers(alone, a, 0.025), alone)
 
 
 def test_count_candidates_stay_within_the_eigengap_search():
