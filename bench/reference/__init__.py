@@ -16,12 +16,48 @@ says so (``extrapolated``) and how much was actually run.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from . import ik, joints, rigid, segment
 
-__all__ = ["fit_reference", "ik", "joints", "rigid", "segment"]
+__all__ = ["clean_and_segment", "fit_reference", "ik", "joints", "rigid", "segment", "timed_output"]
+
+
+def timed_output() -> tuple[dict, Callable[[str, float, float], None]]:
+    """A chain's result dict (``timings``, ``extrapolated``, ``cpu``) and ``tick(stage, t0, c0)``,
+    which records the wall and CPU seconds since ``t0`` / ``c0`` under ``stage``."""
+    out: dict = {"timings": {}, "extrapolated": {}, "cpu": {}}
+
+    def tick(name: str, t0: float, c0: float) -> None:
+        out["timings"][name] = time.perf_counter() - t0
+        out["cpu"][name] = time.process_time() - c0
+
+    return out, tick
+
+
+def clean_and_segment(
+    out: dict, tick, positions: np.ndarray, rate: float, n_segments: int | None, *,
+    clean_data: bool, stages: tuple[str, ...], seed: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chains' first two stages, timed into ``out``: NaN to a mask, :func:`segment.clean`
+    (with ``clean_data`` and ``"clean"`` in ``stages``), :func:`segment.segment`. Returns the
+    positions (missing = 0), the mask and each marker's segment."""
+    mask = np.isfinite(positions).all(-1)
+    x = np.where(mask[..., None], positions, 0.0).astype(np.float64)
+    keep = np.arange(x.shape[1])
+    t0, c0 = time.perf_counter(), time.process_time()
+    if clean_data and "clean" in stages:
+        x, mask, keep = segment.clean(x, mask, rate)
+    tick("clean", t0, c0)
+    out["kept_markers"] = keep
+    out["x"], out["mask"] = x, mask
+    t0, c0 = time.perf_counter(), time.process_time()
+    seg = segment.segment(x, mask, rate, n_segments, seed=seed)
+    tick("segment", t0, c0)
+    out["marker_segment"] = seg
+    return x, mask, seg
 
 
 def fit_reference(
@@ -49,26 +85,9 @@ def fit_reference(
     Returns a dict with ``timings`` (seconds, extrapolated where marked),
     ``extrapolated`` (stage -> "from N of M ..."), and the stage outputs.
     """
-    out: dict = {"timings": {}, "extrapolated": {}, "cpu": {}}
-
-    def tick(name, t0, c0):
-        out["timings"][name] = time.perf_counter() - t0
-        out["cpu"][name] = time.process_time() - c0
-
-    mask = np.isfinite(positions).all(-1)
-    x = np.where(mask[..., None], positions, 0.0).astype(np.float64)
-    keep = np.arange(x.shape[1])
-    t0, c0 = time.perf_counter(), time.process_time()
-    if clean_data and "clean" in stages:
-        x, mask, keep = segment.clean(x, mask, rate)
-    tick("clean", t0, c0)
-    out["kept_markers"] = keep
-    out["x"], out["mask"] = x, mask
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    seg = segment.segment(x, mask, rate, n_segments, seed=seed)
-    tick("segment", t0, c0)
-    out["marker_segment"] = seg
+    out, tick = timed_output()
+    x, mask, seg = clean_and_segment(out, tick, positions, rate, n_segments, clean_data=clean_data, stages=stages,
+                                     seed=seed)
     n_seg = int(seg.max()) + 1
     if "joint_costs" not in stages:
         return out

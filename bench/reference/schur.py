@@ -53,13 +53,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from . import clean_and_segment, timed_output
 from . import rigid as _rigid
-from . import segment as _segment
 from .joints import (
     MIN_FRAME_MARKERS,
     MIN_PAIR_FRAMES,
     MIN_PAIR_MARKERS,
     PairFit,
+    _pair_members,
     algebraic_start,
     consistency_start,
     mst_topology,
@@ -483,10 +484,6 @@ def solve_pair(
     )[0]
 
 
-def _pair_members(seg: np.ndarray, a: int, b: int) -> np.ndarray:
-    return np.flatnonzero((seg == a) | (seg == b))
-
-
 def all_pair_costs(
     x: np.ndarray,
     mask: np.ndarray,
@@ -599,26 +596,9 @@ def fit_strong(
     :func:`bench.reference.fit_reference` (``timings`` and ``cpu`` per stage, outputs), plus the
     LM steps and marker counts of every pair (``pair_steps``, ``pair_ks``) and tree joint
     (``tree_steps``, ``tree_ks``)."""
-    out: dict = {"timings": {}, "extrapolated": {}, "cpu": {}}
-
-    def tick(name, t0, c0):
-        out["timings"][name] = time.perf_counter() - t0
-        out["cpu"][name] = time.process_time() - c0
-
-    mask = np.isfinite(positions).all(-1)
-    x = np.where(mask[..., None], positions, 0.0).astype(np.float64)
-    keep = np.arange(x.shape[1])
-    t0, c0 = time.perf_counter(), time.process_time()
-    if clean_data and "clean" in stages:
-        x, mask, keep = _segment.clean(x, mask, rate)
-    tick("clean", t0, c0)
-    out["kept_markers"] = keep
-    out["x"], out["mask"] = x, mask
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    seg = _segment.segment(x, mask, rate, n_segments, seed=seed)
-    tick("segment", t0, c0)
-    out["marker_segment"] = seg
+    out, tick = timed_output()
+    x, mask, seg = clean_and_segment(out, tick, positions, rate, n_segments, clean_data=clean_data, stages=stages,
+                                     seed=seed)
     n_seg = int(seg.max()) + 1
     if "joint_costs" not in stages:
         return out
