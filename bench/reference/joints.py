@@ -337,6 +337,16 @@ def mst_topology(cost: np.ndarray, root: int | None = None) -> tuple[np.ndarray,
     return np.asarray(edges, int).reshape(-1, 2), root
 
 
+def tree_start(seg: np.ndarray, fits: dict, pair_frames: np.ndarray, frames: np.ndarray, p: int, c: int):
+    """Tree joint ``(p, c)``'s markers and start: the pair-pass joint interpolated in time to
+    ``frames`` (from the frames the pair pass placed) and its radii."""
+    key = (min(p, c), max(p, c))
+    first = fits[key]
+    ok = np.isfinite(first.positions).all(1)
+    c0 = np.stack([np.interp(frames, pair_frames[ok], first.positions[ok, d]) for d in range(3)], 1)
+    return _pair_members(seg, *key), c0, first.radii
+
+
 def tree_joints(
     x: np.ndarray,
     mask: np.ndarray,
@@ -359,12 +369,8 @@ def tree_joints(
     out = np.full((frames.size, len(edges), 3), np.nan)
     costs = np.full(len(edges), np.inf)
     for j, (p, c) in enumerate(edges):
-        key = (min(p, c), max(p, c))
-        idx = _pair_members(seg, *key)
-        first = fits[key]
-        ok = np.isfinite(first.positions).all(1)  # frames the pair pass placed
-        c0 = np.stack([np.interp(frames, pair_frames[ok], first.positions[ok, d]) for d in range(3)], 1)
-        fit = solve_pair(x[frames][:, idx], mask[frames][:, idx], alpha, c0=c0, r0=first.radii, max_nfev=max_nfev)
+        idx, c0, r0 = tree_start(seg, fits, pair_frames, frames, p, c)
+        fit = solve_pair(x[frames][:, idx], mask[frames][:, idx], alpha, c0=c0, r0=r0, max_nfev=max_nfev)
         out[:, j] = fit.positions
         costs[j] = fit.cost
     return out, costs

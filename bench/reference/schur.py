@@ -64,6 +64,7 @@ from .joints import (
     algebraic_start,
     consistency_start,
     mst_topology,
+    tree_start,
 )
 
 __all__ = [
@@ -547,12 +548,8 @@ def tree_joints(
     xf, mf = x[frames], mask[frames]
     jobs = []
     for p, c in edges:
-        key = (min(p, c), max(p, c))
-        idx = _pair_members(seg, *key)
-        first = fits[key]
-        ok = np.isfinite(first.positions).all(1)
-        c0 = np.stack([np.interp(frames, pair_frames[ok], first.positions[ok, d]) for d in range(3)], 1)
-        jobs.append((xf[:, idx], mf[:, idx], c0, first.radii, first.nfev))
+        idx, c0, r0 = tree_start(seg, fits, pair_frames, frames, p, c)
+        jobs.append((xf[:, idx], mf[:, idx], c0, r0, fits[(min(p, c), max(p, c))].nfev))
     workers = default_workers() if workers is None else workers
 
     def run(j):
