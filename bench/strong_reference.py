@@ -39,21 +39,20 @@ import time
 import warnings
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
 # As bench/worker.py: BLAS pools limited to one thread before numpy loads (unless set), for jaxskel
 # and both references alike: on a shared 2-core machine multithreaded OpenBLAS calls on small
 # arrays were measured many times slower (a first run of this script without it: the scipy
 # reference's 10 s tree joints took 149 s, not ~4 s). The strong reference's own pool is its
 # threads (--workers).
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS")
-_SET_HERE = [v for v in _THREAD_VARS if v not in os.environ]
-for _v in _SET_HERE:
-    os.environ[_v] = "1"
+from bench.worker import THREAD_VARS, limit_blas  # noqa: E402
+
+_SET_HERE = limit_blas()
 
 import numpy as np  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 ALPHA = 1e-5
 TOPOLOGY_FRAMES = 300
@@ -382,9 +381,7 @@ def markdown(payload: dict) -> str:
             + f" on {payload['runs'][0]['machine']['affinity']} cores. The machine was shared with other fits, so "
             "every time here is inflated; jaxskel's warm fit used " + ", ".join(
                 f"{r['jaxskel']['warm_cpu_s'] / r['jaxskel']['warm_s']:.2f}" for r in busy)
-            + " CPU seconds per second, i.e. about one core, like the references. For scale only (another machine "
-            "state): docs/bench/pipeline_10s_120s.md measured jaxskel's warm 120 s fit at 7.92 s, 0.68 s of it IK "
-            "(not run here)."]
+            + " CPU seconds per second, i.e. about one core, like the references."]
     lines += ["", "| target | measured | met |", "|---|---|---|"]
     for dur, want in ((120.0, 10.0), (600.0, 15.0)):
         rec = next((r for r in payload["records"] if r["duration_s"] == dur), None)
@@ -547,7 +544,7 @@ def main(argv=None) -> dict:
         "cpu": _cpu_model(), "cores": os.cpu_count(), "affinity": len(os.sched_getaffinity(0)),
         "python": platform.python_version(), "numpy": np.__version__, "jax": jax.__version__,
         "jax_backend": jax.default_backend(), "jaxskel": getattr(jaxskel, "__version__", "?"), "workers": workers,
-        "blas_threads": {v: os.environ.get(v) for v in _THREAD_VARS}, "blas_threads_set_here": _SET_HERE,
+        "blas_threads": {v: os.environ.get(v) for v in THREAD_VARS}, "blas_threads_set_here": _SET_HERE,
         "rates": machine_rates(),
     }
     records = [run_duration(d, not args.no_scipy, workers) for d in args.durations]

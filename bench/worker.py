@@ -16,11 +16,13 @@ from __future__ import annotations
 import os
 import sys
 
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS")
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS")
 
 
-def _limit_blas() -> list[str]:
-    set_here = [v for v in _THREAD_VARS if v not in os.environ]
+def limit_blas() -> list[str]:
+    """Limit the BLAS pools to one thread where the environment does not say (module docstring); the
+    variables set here."""
+    set_here = [v for v in THREAD_VARS if v not in os.environ]
     for v in set_here:
         os.environ[v] = "1"
     os.environ["BENCH_SET_THREAD_VARS"] = ",".join(set_here)
@@ -64,7 +66,7 @@ def machine_info() -> dict:
         "machine": platform.machine(),
         "python": platform.python_version(),
         "load_avg": [round(v, 2) for v in os.getloadavg()],
-        "blas_threads": {v: os.environ.get(v) for v in _THREAD_VARS},
+        "blas_threads": {v: os.environ.get(v) for v in THREAD_VARS},
     }
 
 
@@ -137,5 +139,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    _limit_blas()
+    limit_blas()
     sys.exit(main())

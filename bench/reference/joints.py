@@ -272,25 +272,46 @@ def all_pair_costs(
     present are infeasible (``inf``). ``pairs`` restricts the solve to a subset (for
     timing; the rest stay ``inf``). Returns ``(cost, fits, frames)``.
     """
+    frames, feasible, xs, ms = feasible_pairs(x, mask, seg, n_segments, max_frames=max_frames, pairs=pairs)
+    cost = np.full((n_segments, n_segments), np.inf)
+    fits: dict[tuple[int, int], PairFit] = {}
+    for (a, b), x_pair, m_pair in zip(feasible, xs, ms):
+        fit = solve_pair(x_pair, m_pair, alpha, max_nfev=max_nfev)
+        fits[(a, b)] = fit
+        cost[a, b] = cost[b, a] = mst_weight(fit.cost, m_pair)
+    return cost, fits, frames
+
+
+def feasible_pairs(
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_segments: int, *, max_frames: int,
+    pairs: list[tuple[int, int]] | None = None,
+) -> tuple[np.ndarray, list[tuple[int, int]], list[np.ndarray], list[np.ndarray]]:
+    """The all-pairs pass's problems: ``max_frames`` evenly spaced frames, and of the segment
+    pairs (all, or ``pairs``) those with four markers or more and ten frames or more with three
+    of them present, each with its markers' positions (F, K, 3) and mask (F, K) on those frames.
+    Returns ``(frames, pairs, xs, masks)``."""
     stride = max(1, int(np.ceil(x.shape[0] / max_frames)))
     frames = np.arange(0, x.shape[0], stride)
     xf, mf = x[frames], mask[frames]
-    cost = np.full((n_segments, n_segments), np.inf)
-    fits: dict[tuple[int, int], PairFit] = {}
     todo = pairs if pairs is not None else [(a, b) for a in range(n_segments) for b in range(a + 1, n_segments)]
+    feasible, xs, ms = [], [], []
     for a, b in todo:
         idx = _pair_members(seg, a, b)
         if idx.size < MIN_PAIR_MARKERS or (mf[:, idx].sum(1) >= MIN_FRAME_MARKERS).sum() < MIN_PAIR_FRAMES:
             continue
-        fit = solve_pair(xf[:, idx], mf[:, idx], alpha, max_nfev=max_nfev)
-        fits[(a, b)] = fit
-        # MST weight: the cost per residual degree of freedom, Q / f with
-        # f = sum_t (K_t - 3) / sum_t K_t over frames with >= 3 markers (as jaxskel).
-        k_t = mf[:, idx].sum(1)
-        k_t = k_t[k_t >= MIN_FRAME_MARKERS]
-        f = (k_t - 3).sum() / max(k_t.sum(), 1)
-        cost[a, b] = cost[b, a] = fit.cost / f if f > 0 else np.inf
-    return cost, fits, frames
+        feasible.append((a, b))
+        xs.append(xf[:, idx])
+        ms.append(mf[:, idx])
+    return frames, feasible, xs, ms
+
+
+def mst_weight(objective: float, pair_mask: np.ndarray) -> float:
+    """The MST weight of a pair: its cost per residual degree of freedom, Q / f with
+    f = sum_t (K_t - 3) / sum_t K_t over frames with >= 3 markers (as jaxskel); inf where f = 0."""
+    k_t = pair_mask.sum(1)
+    k_t = k_t[k_t >= MIN_FRAME_MARKERS]
+    f = (k_t - 3).sum() / max(k_t.sum(), 1)
+    return objective / f if f > 0 else np.inf
 
 
 def _centre(n: int, edges: np.ndarray) -> int:

@@ -57,13 +57,12 @@ from . import clean_and_segment, timed_output
 from . import rigid as _rigid
 from .joints import (
     MIN_FRAME_MARKERS,
-    MIN_PAIR_FRAMES,
-    MIN_PAIR_MARKERS,
     PairFit,
-    _pair_members,
     algebraic_start,
     consistency_start,
+    feasible_pairs,
     mst_topology,
+    mst_weight,
     tree_start,
 )
 
@@ -500,27 +499,13 @@ def all_pair_costs(
 ) -> tuple[np.ndarray, dict, np.ndarray]:
     """As :func:`bench.reference.joints.all_pair_costs` (same frames, feasibility and MST
     weight Q / f), every pair solved by the batched Schur LM."""
-    stride = max(1, int(np.ceil(x.shape[0] / max_frames)))
-    frames = np.arange(0, x.shape[0], stride)
-    xf, mf = x[frames], mask[frames]
+    frames, feasible, xs, ms = feasible_pairs(x, mask, seg, n_segments, max_frames=max_frames, pairs=pairs)
     cost = np.full((n_segments, n_segments), np.inf)
-    todo = pairs if pairs is not None else [(a, b) for a in range(n_segments) for b in range(a + 1, n_segments)]
-    feasible, xs, ms = [], [], []
-    for a, b in todo:
-        idx = _pair_members(seg, a, b)
-        if idx.size < MIN_PAIR_MARKERS or (mf[:, idx].sum(1) >= MIN_FRAME_MARKERS).sum() < MIN_PAIR_FRAMES:
-            continue
-        feasible.append((a, b))
-        xs.append(xf[:, idx])
-        ms.append(mf[:, idx])
     fitted = solve_pairs(xs, ms, alpha, max_steps=max_nfev, chunk=chunk, workers=workers)
     fits = {}
     for (a, b), m_pair, fit in zip(feasible, ms, fitted):
         fits[(a, b)] = fit
-        k_t = m_pair.sum(1)
-        k_t = k_t[k_t >= MIN_FRAME_MARKERS]
-        f = (k_t - 3).sum() / max(k_t.sum(), 1)
-        cost[a, b] = cost[b, a] = fit.cost / f if f > 0 else np.inf
+        cost[a, b] = cost[b, a] = mst_weight(fit.cost, m_pair)
     return cost, fits, frames
 
 
