@@ -25,6 +25,10 @@ CASES = {
     "Hamner static alone": ["opensim_models/Hamner/subject02_static.trc"],
     "biobuddy anatomical posture + right hip": ["biobuddy/lower_limb_calibration/anatomical_posture.c3d",
                                                "biobuddy/lower_limb_calibration/Test_func_rhip.c3d"],
+    "biobuddy calibration set (2 static postures + 7 functional trials)": [
+        f"biobuddy/lower_limb_calibration/{name}.c3d" for name in (
+            "anatomical_posture", "Test_func_anat", "Test_func_lhip", "Test_func_rhip", "Test_func_lknee",
+            "Test_func_rknee", "Test_func_lankle", "Test_func_rankle", "Test_func_trunk")],
     "biobuddy right_hip (planted feet)": ["biobuddy/functional_trials/right_hip.c3d"],
     "pyCGM Movement_trial": ["pycgm/Movement_trial.c3d"],
     "KneeltoProne01": ["auto_marker_label/KneeltoProne01.c3d"],

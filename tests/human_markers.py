@@ -1,8 +1,9 @@
 """Body parts of the standard marker sets in the shared recordings, and the .asf skeletons.
 
-Sets: the 41-marker Vicon set of CMU and HDM05, and Clouthier et al.'s 62-marker cluster
-set (``auto_marker_label``: four-marker limb clusters, head, back, pelvis, acromion,
-wrist, hand, ankle and foot markers).
+Sets: the 41-marker Vicon set of CMU and HDM05 (and its Plug-in-Gait spellings), Clouthier
+et al.'s 62-marker cluster set (``auto_marker_label``: four-marker limb clusters, head,
+back, pelvis, acromion, wrist, hand, ankle and foot markers), numediart's 68-marker set
+and biobuddy's lower-limb calibration set.
 
 Used to judge a fitted tree on real recordings without ground-truth segment
 labels: a segment is named after the body part most of its markers sit on, and an
@@ -63,6 +64,19 @@ for _s in "LR":
     })
     ON_JOINT |= {f"L{_s}{j}" for j in ("AC", "_HLE", "_HME", "_RSP", "_USP", "_FLE", "_FME", "_FAL", "_TAM")}
 PART["LR-SK1"] = "R shank"  # spelled with a hyphen in the file
+# biobuddy's lower-limb calibration set: Plug-in-Gait plus spinal processes (S3, S1 on the
+# sacrum, S1 at the lumbosacral joint; T6, T1; C2 on the neck), medial epicondyles and
+# malleoli (KNEM, ANKM), two more thigh and shank markers each (THIB/THID, TIBF/TIBD),
+# navicular and fifth metatarsal head (NAV, TOE5).
+PART.update({"S3": "pelvis", "S1": "pelvis", "T6": "thorax", "T1": "thorax", "C2": "thorax"})
+ON_JOINT |= {"S1", "C2"}
+for _s in "LR":
+    PART.update({
+        f"{_s}THIB": f"{_s} thigh", f"{_s}THID": f"{_s} thigh", f"{_s}KNEM": f"{_s} thigh",
+        f"{_s}TIBF": f"{_s} shank", f"{_s}TIBD": f"{_s} shank", f"{_s}ANKM": f"{_s} shank",
+        f"{_s}NAV": f"{_s} foot", f"{_s}TOE5": f"{_s} foot",
+    })
+    ON_JOINT |= {f"{_s}KNEM", f"{_s}ANKM"}
 
 ADJACENT: set[frozenset[str]] = {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))}
 for _s in "LR":

@@ -291,8 +291,8 @@ def test_biobuddy_hip_and_knee_trials_fitted_together_give_the_leg_skeleton():
     leg) come out as one segment; the two hip and two knee trials fitted together (the
     paper's multi-trial fit) separate pelvis, thighs, shanks and feet and joint them
     anatomically. No ground truth: the two thighs (hip-knee) agree within 2 cm (measured
-    441 / 434 mm). Adding the two ankle trials breaks the tree (the left thigh jointed to
-    the right thigh; README, Known limits)."""
+    441 / 434 mm). With the two ankle trials added the costs joint the left thigh to the
+    right thigh and the pose check takes it back (docs/limits.md)."""
     alone = jaxskel.fit_skeleton(jaxskel.load(DATA / BIOBUDDY / "Test_func_lhip.c3d"), ik=False, rigid=False)
     labels, seg = list(alone.trial.labels), alone.segmentation.marker_segment
     assert seg[labels.index("LTHI")] == seg[labels.index("LTIB")]

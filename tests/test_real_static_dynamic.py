@@ -1,5 +1,6 @@
-"""A lab's static trial fitted together with its dynamic trial (Hamner: static pose with medial
-knee and ankle markers, then treadmill running; opensim_models/Hamner)."""
+"""A lab's static trials fitted together with its dynamic trials: Hamner (static pose with medial
+knee and ankle markers, then treadmill running; opensim_models/Hamner) and biobuddy's lower-limb
+calibration set (two static postures and seven functional trials)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from human_markers import implausible_edges, misplaced_markers, segment_parts
 from osim_reference import hamner_joint_centres, read_osim
 
 import jaxskel
@@ -67,3 +69,37 @@ def test_static_plus_running_places_every_marker_or_leaves_it_out():
             continue
         err = np.linalg.norm(result.motion.joint_positions[lo:hi, j] - reference[name], axis=-1)
         assert np.sqrt(np.nanmean(err**2)) < 0.035, (name, np.sqrt(np.nanmean(err**2)))
+
+
+BIOBUDDY = DATA.parents[1] / "biobuddy" / "lower_limb_calibration"
+BIOBUDDY_TRIALS = ("anatomical_posture", "Test_func_anat", "Test_func_lhip", "Test_func_rhip", "Test_func_lknee",
+                   "Test_func_rknee", "Test_func_lankle", "Test_func_rankle", "Test_func_trunk")
+
+
+@pytest.mark.extended  # about 1 min
+def test_biobuddy_static_postures_and_functional_trials_place_every_marker():
+    """biobuddy's whole calibration set (Vicon, 12 Hz, 59-60 markers: Plug-in-Gait plus spinal
+    processes, medial epicondyles and malleoli, navicular): both static postures are found still
+    and kept out of the joint stages, every marker sits with the body part it is on (a marker on
+    a joint with either neighbour, the fingers with a forearm whose wrist no trial bends), and
+    the tree is anatomical; nothing is left out, as every trial carries every marker."""
+    trials = [jaxskel.load(BIOBUDDY / f"{name}.c3d") for name in BIOBUDDY_TRIALS]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = jaxskel.fit_skeleton(trials, ik=False)
+    seg = result.segmentation
+    bounds = result.trial_bounds
+    assert seg.still_spans == (bounds[0], bounds[1])
+    assert seg.left_out == {}
+    labels, groups = list(result.trial.labels), seg.marker_segment
+    assert misplaced_markers(labels, groups, seg.distance_std, seg.rigid_limit) == []
+    # judged without the rigidity excuse, only the fingers sit off their part
+    assert sorted(misplaced_markers(labels, groups)) == [("LFIN", "L forearm"), ("RFIN", "R forearm")]
+    assert implausible_edges(labels, groups, result.edges) == []
+    parts = segment_parts(labels, groups)
+    edges = {frozenset((parts[a], parts[b])) for a, b in result.edges.tolist()}
+    for s in "LR":
+        for a, b in (("pelvis", f"{s} thigh"), (f"{s} thigh", f"{s} shank"), (f"{s} shank", f"{s} foot"),
+                     (f"{s} upper arm", f"{s} forearm")):
+            assert frozenset((a, b)) in edges, (a, b)
+    assert frozenset(("thorax", "head")) in edges and frozenset(("pelvis", "thorax")) in edges
