@@ -88,13 +88,17 @@ for _s in "LR":
 
 
 def segment_parts(labels, marker_segment) -> list[str | None]:
-    """Body part of each segment: the majority of its off-joint markers (else of all)."""
+    """Body part of each segment: the majority of its off-joint markers (else of all); a tie
+    goes to the part more of all its markers (those on joints too) name, then alphabetically.
+    (numediart 85_12's group of shin, ankle and heel markers, one off-joint marker each of
+    shank and foot, is the shank: its ankle marker counts for the shank.)"""
     names = [lab.split(":")[-1] for lab in labels]
     parts = []
     for s in range(int(np.max(marker_segment)) + 1):
         mine = [n for n, g in zip(names, marker_segment) if g == s and n in PART]
-        votes = [PART[n] for n in mine if n not in ON_JOINT] or [PART[n] for n in mine]
-        parts.append(max(sorted(set(votes)), key=votes.count) if votes else None)
+        every = [PART[n] for n in mine]
+        votes = [PART[n] for n in mine if n not in ON_JOINT] or every
+        parts.append(max(sorted(set(votes)), key=lambda p: (votes.count(p), every.count(p))) if votes else None)
     return parts
 
 

@@ -133,6 +133,27 @@ def test_flat_spectrum_grows_to_the_rigid_count_with_the_knee_marker_paired():
     assert all(len(g) >= 2 for g in seg.groups)
 
 
+@pytest.mark.extended  # about a minute on 2 cores; the segmentation above runs by default
+def test_numediart_85_12_tree_is_anatomical_with_default_settings():
+    """numediart 85_12 (CMU set, 37 s), the whole default fit on the 13 rigid segments: every
+    joint joins adjacent body parts and no marker sits with a part it is not on. The ankle
+    barely moves in this take, so the left heel marker stays with the shin and ankle markers;
+    the map names that group the shank (its ankle marker breaks the shin-heel tie), and it
+    is jointed to the left thigh and the left forefoot."""
+    result = _fit("numediart/85_12.c3d", None)
+    labels, seg = result.trial.labels, result.segmentation.marker_segment
+    assert result.n_segments == 13
+    assert implausible_edges(labels, seg, result.edges) == []
+    assert misplaced_markers(labels, seg, result.segmentation.distance_std, result.segmentation.rigid_limit) == []
+    parts = segment_parts(labels, seg)
+    edges = {frozenset((parts[a], parts[b])) for a, b in result.edges.tolist()}
+    for s in "LR":
+        assert {frozenset(("pelvis", f"{s} thigh")), frozenset((f"{s} thigh", f"{s} shank")),
+                frozenset((f"{s} shank", f"{s} foot")), frozenset(("thorax", f"{s} upper arm")),
+                frozenset((f"{s} upper arm", f"{s} forearm"))} <= edges, edges
+    assert {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))} <= edges
+
+
 def test_trunk_trial_grows_to_the_rigid_count_with_the_shoulder_marker_paired():
     """biobuddy's trunk functional trial (Vicon, 59 markers): the eigengap's 11 groups hold
     C2 with the left shoulder marker (18 mm apart) and each foot with its leg. The first
