@@ -37,9 +37,12 @@ import numpy as np
 
 import jaxskel
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.reference, run as a script
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from human_markers import segment_parts  # noqa: E402
 from osim_reference import hamner_joint_centres, read_osim  # noqa: E402
+
+from bench.reference.rigid import kabsch  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 HAMNER = DATA / "opensim_models" / "Hamner"
@@ -64,17 +67,11 @@ def _joint(result, a: int, b: int) -> int | None:
 
 def _marker_poses(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame rotation ``R`` (F, 3, 3) and translation ``t`` (F, 3) with ``x_f ~ R_f y + t_f``
-    for a segment's markers ``x`` (F, K, 3), ``y`` their mean shape (Procrustes, batched SVD);
-    NaN where a marker is missing."""
+    for a segment's markers ``x`` (F, K, 3), ``y`` their mean shape (the references' batched
+    :func:`bench.reference.rigid.kabsch`); NaN where a marker is missing."""
     seen = np.isfinite(x).all(axis=(1, 2))
     shape = np.nanmean(x[seen], axis=0)
-    shape = shape - shape.mean(axis=0)
-    centred = x - x.mean(axis=1, keepdims=True)
-    u, _, vt = np.linalg.svd(np.einsum("fki,kj->fij", np.where(seen[:, None, None], centred, 0.0), shape))
-    sign = np.sign(np.linalg.det(u @ vt))
-    u[..., 2] *= sign[:, None]
-    rot = u @ vt
-    t = x.mean(axis=1)
+    rot, t = kabsch(np.broadcast_to(shape, x.shape), np.where(seen[:, None, None], x, 0.0), np.ones(x.shape[:2]))
     rot[~seen], t[~seen] = np.nan, np.nan
     return rot, t
 
