@@ -3,6 +3,7 @@
 Usage::
 
     PYTHONPATH=. python bench/sd06_speed.py [--frames 24000] [--out docs/bench/sd06_speed.md]
+    PYTHONPATH=. python bench/sd06_speed.py --compile-study   # where the first call's time goes
 
 The recording is synthetic (``synth.full_body``, every degree of freedom moving,
 the true segment poses: no IK). Each run is a fresh Python process (so "first
@@ -19,6 +20,13 @@ pose ``parameterize`` found (relative limb rotations, samples, circle-intersecti
 angles with the branch by continuity, twist) in NumPy, vectorised over frames with
 the branch walk a scalar Python loop; it extracts no axes, so it does a fraction of
 ``parameterize``'s work.
+
+``--compile-study`` (fresh process, no persistent cache) times each of ``parameterize``'s
+three stage programs apart: tracing and lowering, XLA compilation (wall and process CPU
+time: XLA:CPU compiles on several threads) and a run, and what the first call spends besides
+(tracing, lowering, host work), at XLA's backend optimisation
+levels 2 (the default), 1 and 0, and the three compiled at once on three threads. It
+appends the table to ``--out``.
 """
 
 from __future__ import annotations
@@ -92,6 +100,110 @@ def child(n_frames: int) -> None:
     }))
 
 
+STAGES = ("_filter_stage", "_axes_stage", "_angles_stage")
+STUDY_HEADING = "## Where the first call's time goes"
+
+
+def compile_study(n_frames: int) -> dict:
+    """Runs in a fresh process: each stage program's trace, compile and run time by optimisation level."""
+    from concurrent.futures import ThreadPoolExecutor
+    from types import SimpleNamespace
+
+    import jax
+
+    from jaxskel.sd06 import _parameterize, normalize, parameterize
+
+    body, joints, quats, trans, rate = recording(n_frames)
+    skeleton = SimpleNamespace(edges=body.edges, root=body.root)
+    motion = SimpleNamespace(joint_positions=joints, rotations=quats, segment_translations=trans, rate=rate)
+    norm = normalize(skeleton, motion)
+    programs, calls = {name: getattr(_parameterize, name) for name in STAGES}, {}
+
+    def recorder(name):
+        def call(*args, **kwargs):
+            calls[name] = (args, kwargs)
+            return programs[name](*args, **kwargs)
+        return call
+
+    for name in STAGES:  # the stages' arguments, as parameterize passes them
+        setattr(_parameterize, name, recorder(name))
+    try:
+        t0 = time.perf_counter()
+        parameterize(skeleton, motion, norm)
+        first = time.perf_counter() - t0
+    finally:
+        for name in STAGES:
+            setattr(_parameterize, name, programs[name])
+
+    def lowered(name, level):
+        program = programs[name]
+        options = {**program.compiler_options, "xla_backend_optimization_level": level}
+        jitted = jax.jit(program._fn, compiler_options=options, **program._kwargs)
+        args, kwargs = calls[name]
+        static = set(program._kwargs.get("static_argnames", ()))
+        dynamic = {k: v for k, v in kwargs.items() if k not in static}  # a compiled program takes these only
+        return jitted.lower(*args, **kwargs), (jitted, args, dynamic)
+
+    rows = []
+    with jax.enable_x64(True):  # as parameterize runs them (float64_scope)
+        for level in (2, 1, 0):
+            for name in STAGES:
+                low, (jitted, args, kwargs) = lowered(name, level)
+                t0, c0 = time.perf_counter(), time.process_time()
+                compiled = low.compile()
+                wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+                runs = []
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(compiled(*args, **kwargs))
+                    runs.append(time.perf_counter() - t0)
+                text = compiled.as_text() or ""
+                rows.append({"level": level, "stage": name.strip("_"), "compile": wall,
+                             "compile_cpu": cpu, "run": min(runs), "fusions": text.count(" fusion(")})
+        jax.clear_caches()  # the programs above stay compiled in memory otherwise
+        lows = [lowered(name, 2)[0] for name in STAGES]
+        t0, c0 = time.perf_counter(), time.process_time()
+        with ThreadPoolExecutor(len(lows)) as pool:
+            list(pool.map(lambda low: low.compile(), lows))
+        together = {"compile": time.perf_counter() - t0, "compile_cpu": time.process_time() - c0}
+    return {"rows": rows, "together": together, "first": first}
+
+
+def compile_study_lines(study: dict) -> list[str]:
+    lines = [
+        STUDY_HEADING + " (`--compile-study`)",
+        "",
+        "Each stage program of `parameterize`, in a fresh process without persistent caches, compiled at XLA's "
+        "backend optimisation levels (2 is XLA's default and jaxskel's). Seconds; compile CPU is the process's "
+        "CPU time during the compilation (XLA:CPU compiles on several threads).",
+        "",
+        "| level | stage | compile (wall) | compile (CPU) | run | fusions |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in study["rows"]:
+        lines.append(f"| {r['level']} | `{r['stage']}` | {r['compile']:.2f} | "
+                     f"{r['compile_cpu']:.2f} | {r['run']:.3f} | {r['fusions']} |")
+    level2 = [r for r in study["rows"] if r["level"] == 2]
+    rest = study["first"] - sum(r["compile"] + r["run"] for r in level2)
+    lines += [
+        "",
+        f"* the first `parameterize` call of this process (given the normalisation): {study['first']:.2f} s, of "
+        f"which {rest:.2f} s is not the three programs' compilation and run (tracing, lowering, host work)",
+    ]
+    for level in (2, 1, 0):
+        rows = [r for r in study["rows"] if r["level"] == level]
+        compile_s, run_s = sum(r["compile"] for r in rows), sum(r["run"] for r in rows)
+        lines.append(f"* level {level}: compile {compile_s:.2f} s (CPU {sum(r['compile_cpu'] for r in rows):.2f} s), "
+                     f"run {run_s:.3f} s; a first call compiled at this level would take about "
+                     f"{rest + compile_s + run_s:.1f} s (the rest above, compilation, one run)")
+    t = study["together"]
+    lines += [
+        f"* level 2, the three compiled at once on three threads: {t['compile']:.2f} s (CPU {t['compile_cpu']:.2f} s)",
+        "",
+    ]
+    return lines
+
+
 def numpy_reference() -> tuple[float, float]:
     """The angles of every joint given the axes, in NumPy: vectorised over frames, the branch walk a
     scalar loop (``tests/sd06/sd06_truth.reference_angles``, the tests' reference). Returns (seconds,
@@ -122,9 +234,23 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=24000)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "bench" / "sd06_speed.md")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--compile-study", action="store_true", help="time each stage's compilation (appends to --out)")
     args = ap.parse_args()
+    if args.child and args.compile_study:
+        print(json.dumps(compile_study(args.frames)))
+        return
     if args.child:
         child(args.frames)
+        return
+    if args.compile_study:
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "JAXSKEL_CACHE_DIR": ""}
+        res = subprocess.run([sys.executable, __file__, "--child", "--compile-study", "--frames", str(args.frames)],
+                             env=env, capture_output=True, text=True, check=True)
+        lines = compile_study_lines(json.loads(res.stdout.strip().splitlines()[-1]))
+        text = args.out.read_text(encoding="utf-8") if args.out.exists() else ""
+        head = text.split(STUDY_HEADING)[0].rstrip("\n")
+        args.out.write_text((head + "\n\n" if head else "") + "\n".join(lines), encoding="utf-8")
+        print("\n".join(lines))
         return
     import tempfile
 
@@ -178,7 +304,9 @@ def main() -> None:
         "",
     ]
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines), encoding="utf-8")
+    study = args.out.read_text(encoding="utf-8").split(STUDY_HEADING) if args.out.exists() else []
+    kept = [STUDY_HEADING + study[1]] if len(study) > 1 else []  # a --compile-study section stays
+    args.out.write_text("\n".join(lines + kept), encoding="utf-8")
     print("\n".join(lines))
 
 
