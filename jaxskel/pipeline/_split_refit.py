@@ -12,7 +12,10 @@ the median (:attr:`jaxskel.skeleton.Skeleton.nonrigid_markers`, ``> 3x`` the med
 A single flagged marker on a segment is what soft tissue and markers on joints look
 like on real data, so the count grows only where a segment holds **two or more**
 flagged markers (the cases on synthetic trees and real recordings:
-docs/bench/evidence_from_docstrings.md):
+docs/bench/evidence_from_docstrings.md) among three or more: a group of two can only come
+apart into lone markers, which step 2 never keeps, so its two flagged markers (a thigh
+left with a marker on the knee and one other, both held loosely) would only make the
+segmentation start again elsewhere:
 
 1. segment again from scratch with one segment more (the paper's samplings and
    scoring, :func:`jaxskel.segment.segment_markers` given ``n``), and fit the joints and the
@@ -52,7 +55,9 @@ def crowded_nonrigid(skeleton: Any) -> tuple[str, ...]:
     segments = np.asarray(skeleton.marker_segment)
     seg_of = {lab: int(segments[labels.index(lab)]) for lab in skeleton.nonrigid_markers}
     counts = np.bincount(list(seg_of.values()))
-    return tuple(lab for lab in labels if lab in seg_of and counts[seg_of[lab]] >= 2)
+    sizes = np.bincount(segments[segments >= 0])
+    # a group of two can only split into lone markers, which a kept split never adds (keep_split)
+    return tuple(lab for lab in labels if lab in seg_of and counts[seg_of[lab]] >= 2 and sizes[seg_of[lab]] >= 3)
 
 
 def replay(caught: list[warnings.WarningMessage], stacklevel: int) -> None:

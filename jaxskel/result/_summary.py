@@ -199,6 +199,22 @@ def nonrigid_group_hint(seg: Segmentation) -> str:
     return "two segments clustered as one, or a loose marker: consider a larger n_segments (--segments)"
 
 
+def _hung_text(skeleton: Any, segment: int, names: Sequence[str]) -> str:
+    """``; alone, ...``: how the joint of a one-marker segment was weighed in its host's pose
+    (:mod:`jaxskel.skeleton._attachment_weights`), or ``""``."""
+    scatter = np.asarray(skeleton.diagnostics.get("attachment_scatter", ()), dtype=float)
+    weight = np.asarray(skeleton.diagnostics.get("attachment_weight", ()), dtype=float)
+    edges = np.asarray(skeleton.edges)
+    if np.count_nonzero(np.asarray(skeleton.marker_segment) == segment) != 1:
+        return ""
+    for j in np.flatnonzero(np.isfinite(scatter)) if scatter.size == len(edges) else ():
+        if segment in edges[j]:
+            host = int(edges[j, 0] if edges[j, 1] == segment else edges[j, 1])
+            return (f"; alone on its segment, hung from {names[host]}: its joint wanders {1e3 * scatter[j]:.1f} mm "
+                    f"there and steers that segment's pose with weight {weight[j]:.2g}")
+    return ""
+
+
 def nonrigid_text(skeleton: Any, names: Sequence[str], n_segments: int) -> str | None:
     """One line on the markers the rigid skeleton flags as not rigid, or ``None``."""
     if not skeleton.nonrigid_markers:
@@ -206,7 +222,8 @@ def nonrigid_text(skeleton: Any, names: Sequence[str], n_segments: int) -> str |
     labels = list(skeleton.marker_labels)
     where = [labels.index(lab) for lab in skeleton.nonrigid_markers]
     items = ", ".join(
-        f"{labels[i]} on {names[int(skeleton.marker_segment[i])]} ({1e3 * skeleton.marker_rms[i]:.1f} mm)"
+        f"{labels[i]} on {names[int(skeleton.marker_segment[i])]} ({1e3 * skeleton.marker_rms[i]:.1f} mm"
+        f"{_hung_text(skeleton, int(skeleton.marker_segment[i]), names)})"
         for i in where
     )
     return (

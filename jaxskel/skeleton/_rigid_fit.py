@@ -11,6 +11,9 @@ skeleton, in two steps.
    cloud gives constant marker and joint offsets in the segment frame. Including the
    joint centres is what lets segments with one or two markers be posed: a segment with
    fewer than three non-collinear points in total is skipped here and placed by step 2.
+   The joint of a one-marker segment weighs in its host's alignment by how still it
+   sits there (:mod:`jaxskel.skeleton._attachment_weights`): a cluster marker split off
+   by soft tissue drags its joint with it and must not turn the host.
 
 2. **Global refinement** (optional, on by default). One least-squares problem over the
    frames where the skeleton is rigid::
@@ -75,6 +78,7 @@ from .._math.procrustes import procrustes
 from .._math.rotation import quat_to_matrix
 from .._runtime.precision import float64_scope
 from ..io import Trial
+from ._attachment_weights import attachment_points, attachment_weights, scatter_about_mean
 from ._hinge_centres import (
     MAX_OFF_AXIS, MAX_OFF_AXIS_REFINED, axial_coordinates, axis_along_a_bone, hinge_axes, hinge_shifts,
     longest_bone, straddling_pair,
@@ -157,7 +161,10 @@ class Skeleton:
         ``ik_failures``, ``procrustes_segments`` (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
         ``hinge_shift`` (per joint: how far it was moved along its axis into its limb
         plane, m, signed along ``hinge_axis``; 0 for joints not moved) and ``hinge_axis``
-        (per joint: that axis in the parent frame, NaN for joints not moved); when the
+        (per joint: that axis in the parent frame, NaN for joints not moved),
+        ``attachment_weight`` and ``attachment_scatter`` (per joint: the weight of a
+        one-marker segment's joint in its host's Procrustes alignment, 1 for the other
+        joints, and its RMS scatter in the host, m, NaN for the others); when the
         refined poses showed a moved joint turning about more than one axis, the fit is
         redone without moving it and ``hinges_unmoved`` lists those joints.
     segment_names
@@ -832,7 +839,24 @@ def fit_rigid(
     first = np.argmax(weights.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref0 = pts[first, np.arange(n_seg)]
     refw0 = weights[first, np.arange(n_seg)]
-    ref, gpa_rot, gpa_t, gpa_rms = (np.array(a) for a in procrustes(pts, weights, ref0, refw0))
+    hung = attachment_points(edges, members, seg_joints, width)
+    trust = np.ones((n_seg, width))
+    if hung.any():
+        # the joints of one-marker attachments steer their host by how still they sit in it
+        own = (np.array(a) for a in procrustes(pts, weights * ~hung[None], ref0, refw0))
+        _, own_rot, own_t, own_rms = own
+        trust = attachment_weights(hung, own_rms, scatter_about_mean(pts, weights, own_rot, own_t)[1])
+    ref, gpa_rot, gpa_t, gpa_rms = (np.array(a) for a in procrustes(pts, weights * trust[None], ref0, refw0))
+    if hung.any():
+        # a point of small weight: its mean and scatter in the final pose, weighed like a marker's
+        mean, spread = scatter_about_mean(pts, weights, gpa_rot, gpa_t)
+        ref = np.where(hung[..., None], mean, ref)
+        gpa_rms = np.where(hung, np.nan_to_num(spread), gpa_rms)
+    # per joint, as reported: its weight in its host's alignment and its scatter there (NaN: not an attachment's)
+    hung_weight, hung_scatter = np.ones(n_joints), np.full(n_joints, np.nan)
+    for s, k in zip(*np.nonzero(hung)):
+        j = int(seg_joints[s][k - len(members[s])])
+        hung_weight[j], hung_scatter[j] = trust[s, k], gpa_rms[s, k]
     covered = weights.sum(axis=0) > 0  # (S, P)
     alignable = np.zeros(n_seg, bool)
     for s in range(n_seg):
@@ -1045,6 +1069,8 @@ def fit_rigid(
         "hinge_axis": hinge_axis_rest.tolist(),
         "procrustes_rms": [float(np.sqrt(np.mean(gpa_rms[s][covered[s]] ** 2))) if covered[s].any() else float("nan")
                            for s in range(n_seg)],
+        "attachment_weight": hung_weight.tolist(),
+        "attachment_scatter": hung_scatter.tolist(),
     }
     return Skeleton(
         n_segments=n_seg,

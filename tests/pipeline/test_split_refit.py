@@ -85,10 +85,12 @@ def _result(prep, seg, flagged):
 
 
 def test_crowded_markers_are_the_flagged_ones_sharing_a_segment():
-    labels = ("a", "b", "c", "d", "e")
-    sk = _Skeleton(labels, np.array([0, 0, 1, 1, 2]), ("e", "b", "a", "c"))
+    labels = ("a", "b", "c", "d", "e", "f")
+    sk = _Skeleton(labels, np.array([0, 0, 0, 1, 1, 2]), ("e", "b", "a", "d", "f"))
     assert crowded_nonrigid(sk) == ("a", "b")
-    assert crowded_nonrigid(_Skeleton(labels, np.array([0, 0, 1, 1, 2]), ("a", "c", "e"))) == ()
+    assert crowded_nonrigid(_Skeleton(labels, np.array([0, 0, 0, 1, 1, 2]), ("a", "d", "f"))) == ()
+    # both markers of a group of two: a split could only leave them alone, never kept
+    assert crowded_nonrigid(_Skeleton(labels, np.array([0, 0, 0, 1, 1, 2]), ("d", "e"))) == ()
     assert crowded_nonrigid(None) == ()
 
 
