@@ -3,12 +3,13 @@
 The per-segment Procrustes step of the rigid fit (:mod:`jaxskel.skeleton._rigid_fit`) aligns
 each segment's markers *and the centres of its joints*. A one-marker segment hangs from
 its host (:mod:`jaxskel.joints._attachments`), and the centre of their joint is fixed by
-that one marker's distance: where the pair has three markers or fewer it is placed by the
-distance prior alone, next to the lone marker. When the lone marker is a cluster marker
-that soft tissue moves by centimetres (split off its cluster for that reason), this centre
-moves with it inside the host; aligned like a marker, it turns the host's pose, and a
-host left with two markers then no longer turns as a hinge against its neighbour (a knee
-50 mm off along its axis, measured: docs/bench/decisions.md).
+that one marker's distance: where the pair has three markers, any distances fit and the
+distance prior places it. When the lone marker is a cluster marker that soft tissue moves
+by centimetres (split off its cluster for that reason) and its host keeps two markers,
+this centre keeps its distances to all three and so turns about the line of the host's
+two markers with the lone one; aligned like a marker, it turns the host's pose, and the
+host then no longer turns as a hinge against its neighbour (a knee 54 mm off along its
+axis, measured: docs/bench/decisions.md).
 
 So the host is aligned twice. First on its own points alone (its markers and its other
 joints). In that pose each attachment joint ``a`` has a mean position and an RMS scatter
@@ -19,10 +20,12 @@ relative to the host's own points,
     w_a = min(1, (s_0 / s_a)^2),
 
 the weight a point of scatter ``s_a`` has in a weighted least-squares fit whose other
-points scatter by ``s_0``. A joint that sits still in its host (a hand marker about a
-steady wrist) keeps weight 1, as before; one that wanders with its marker weighs next
-to nothing and rides along: its position in the host is its mean there. Only hosts that
-keep three points of their own are treated so (a host needs three to be posed).
+points scatter by ``s_0``. A joint that sits as still in its host as the host's own
+points keeps weight 1, as before (the bundled sample's lone acromion, hand and ankle
+markers: 0.1-0.7); one that wanders with its marker weighs next to nothing (0.001-0.025
+for a thigh marker moved 15-30 mm by soft tissue) and rides along: its position in the
+host is its mean there. Only hosts that keep three points of their own are treated so (a
+host needs three to be posed).
 """
 
 from __future__ import annotations
