@@ -60,21 +60,27 @@ def recording(n_frames: int):
     return body, truth.joint_positions[:n_frames], quats, truth.segment_translations[:n_frames], rate
 
 
+def inputs(n_frames: int):
+    """(body, skeleton, motion): the recording as the ``skeleton`` and ``motion`` objects ``normalize`` and
+    ``parameterize`` read."""
+    from types import SimpleNamespace
+
+    body, joints, quats, trans, rate = recording(n_frames)
+    skeleton = SimpleNamespace(edges=body.edges, root=body.root)
+    motion = SimpleNamespace(joint_positions=joints, rotations=quats, segment_translations=trans, rate=rate)
+    return body, skeleton, motion
+
+
 def child(n_frames: int) -> None:
     """Runs in a fresh process: time the first and repeated calls of normalize, of parameterize given
     that normalisation, and of the whole (parameterize_arrays normalises too); print JSON."""
-    body, joints, quats, trans, rate = recording(n_frames)
+    body, skeleton, motion = inputs(n_frames)
     if os.environ.get("JAXSKEL_CACHE_DIR"):
         # what the jaxskel command does for its process: compiled code and exported programs on disk
         from jaxskel._runtime.compile_cache import enable_compile_cache
 
         enable_compile_cache()
-    from types import SimpleNamespace
-
     from jaxskel.sd06 import normalize, parameterize
-
-    skeleton = SimpleNamespace(edges=body.edges, root=body.root)
-    motion = SimpleNamespace(joint_positions=joints, rotations=quats, segment_translations=trans, rate=rate)
 
     def timed(fn):
         t0 = time.perf_counter()
@@ -107,15 +113,12 @@ STUDY_HEADING = "## Where the first call's time goes"
 def compile_study(n_frames: int) -> dict:
     """Runs in a fresh process: each stage program's trace, compile and run time by optimisation level."""
     from concurrent.futures import ThreadPoolExecutor
-    from types import SimpleNamespace
 
     import jax
 
     from jaxskel.sd06 import _parameterize, normalize, parameterize
 
-    body, joints, quats, trans, rate = recording(n_frames)
-    skeleton = SimpleNamespace(edges=body.edges, root=body.root)
-    motion = SimpleNamespace(joint_positions=joints, rotations=quats, segment_translations=trans, rate=rate)
+    _, skeleton, motion = inputs(n_frames)
     norm = normalize(skeleton, motion)
     programs, calls = {name: getattr(_parameterize, name) for name in STAGES}, {}
 
@@ -138,17 +141,16 @@ def compile_study(n_frames: int) -> dict:
     def lowered(name, level):
         program = programs[name]
         options = {**program.compiler_options, "xla_backend_optimization_level": level}
-        jitted = jax.jit(program._fn, compiler_options=options, **program._kwargs)
         args, kwargs = calls[name]
         static = set(program._kwargs.get("static_argnames", ()))
         dynamic = {k: v for k, v in kwargs.items() if k not in static}  # a compiled program takes these only
-        return jitted.lower(*args, **kwargs), (jitted, args, dynamic)
+        return jax.jit(program._fn, compiler_options=options, **program._kwargs).lower(*args, **kwargs), args, dynamic
 
     rows = []
     with jax.enable_x64(True):  # as parameterize runs them (float64_scope)
         for level in (2, 1, 0):
             for name in STAGES:
-                low, (jitted, args, kwargs) = lowered(name, level)
+                low, args, kwargs = lowered(name, level)
                 t0, c0 = time.perf_counter(), time.process_time()
                 compiled = low.compile()
                 wall, cpu = time.perf_counter() - t0, time.process_time() - c0

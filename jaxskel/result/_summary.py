@@ -202,11 +202,11 @@ def nonrigid_group_hint(seg: Segmentation) -> str:
 def _hung_text(skeleton: Any, segment: int, names: Sequence[str]) -> str:
     """``; alone, ...``: how the joint of a one-marker segment was weighed in its host's pose
     (:mod:`jaxskel.skeleton._attachment_weights`), or ``""``."""
+    if np.count_nonzero(np.asarray(skeleton.marker_segment) == segment) != 1:
+        return ""
     scatter = np.asarray(skeleton.diagnostics.get("attachment_scatter", ()), dtype=float)
     weight = np.asarray(skeleton.diagnostics.get("attachment_weight", ()), dtype=float)
     edges = np.asarray(skeleton.edges)
-    if np.count_nonzero(np.asarray(skeleton.marker_segment) == segment) != 1:
-        return ""
     for j in np.flatnonzero(np.isfinite(scatter)) if scatter.size == len(edges) else ():
         if segment in edges[j]:
             host = int(edges[j, 0] if edges[j, 1] == segment else edges[j, 1])

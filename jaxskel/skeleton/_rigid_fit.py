@@ -843,8 +843,7 @@ def fit_rigid(
     trust = np.ones((n_seg, width))
     if hung.any():
         # the joints of one-marker attachments steer their host by how still they sit in it
-        own = (np.array(a) for a in procrustes(pts, weights * ~hung[None], ref0, refw0))
-        _, own_rot, own_t, own_rms = own
+        _, own_rot, own_t, own_rms = (np.array(a) for a in procrustes(pts, weights * ~hung[None], ref0, refw0))
         trust = attachment_weights(hung, own_rms, scatter_about_mean(pts, weights, own_rot, own_t)[1])
     ref, gpa_rot, gpa_t, gpa_rms = (np.array(a) for a in procrustes(pts, weights * trust[None], ref0, refw0))
     if hung.any():
