@@ -55,6 +55,7 @@ __all__ = [
     "quat_rotate",
     "quat_to_axis_angle",
     "quat_to_matrix",
+    "quat_to_matrix_np",
     "quat_twist_angle",
     "skew",
     "skew_np",
@@ -81,17 +82,21 @@ def quat_normalize(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
-def quat_to_matrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
-    """Rotation matrix of a (not necessarily unit) quaternion; scale is divided out."""
-    w, x, y, z = jnp.moveaxis(q, -1, 0)
+def _quat_to_matrix(xp: ModuleType, q):
+    w, x, y, z = xp.moveaxis(q, -1, 0)
     n = w * w + x * x + y * y + z * z
-    s = 2.0 / jnp.where(n > 0, n, 1.0)
+    s = 2.0 / xp.where(n > 0, n, 1.0)
     rows = [
         [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
         [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
         [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
     ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def quat_to_matrix(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
+    """Rotation matrix of a (not necessarily unit) quaternion; scale is divided out."""
+    return _quat_to_matrix(jnp, q)
 
 
 def matrix_to_quat(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4"]:
@@ -253,6 +258,12 @@ def horn_align(
 def skew_np(v: Float[np.ndarray, "... 3"]) -> Float[np.ndarray, "... 3 3"]:
     """Host form (numpy, float64) of :func:`skew`."""
     return _skew(np, np.asarray(v, dtype=float))
+
+
+def quat_to_matrix_np(q: Float[np.ndarray, "... 4"]) -> Float[np.ndarray, "... 3 3"]:
+    """Host form (numpy, float64) of :func:`quat_to_matrix`, for host-side orchestration
+    (eager JAX would compile each of its operations for every new array shape)."""
+    return _quat_to_matrix(np, np.asarray(q, dtype=float))
 
 
 def axis_angle_to_matrix_np(rotvec: Float[np.ndarray, "... 3"]) -> Float[np.ndarray, "... 3 3"]:

@@ -172,10 +172,13 @@ def _segment_poses(
     sub_pts, sub_w = clouds(np.unique(np.linspace(0, n_frames - 1, min(max_frames, n_frames)).astype(int)))
     first = np.argmax(sub_w.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref = np.asarray(
-        procrustes(sub_pts, sub_w, sub_pts[first, np.arange(n_seg)], sub_w[first, np.arange(n_seg)])[0]
+        _program_cache.call(
+            procrustes, sub_pts, sub_w, sub_pts[first, np.arange(n_seg)], sub_w[first, np.arange(n_seg)]
+        )[0]
     )
     pts, weights = clouds(np.arange(n_frames))
-    rot, t = (np.asarray(a) for a in _align(pts, weights, ref, (sub_w.sum(axis=0) > 0).astype(float)))
+    framed_ref = (sub_w.sum(axis=0) > 0).astype(float)
+    rot, t = (np.asarray(a) for a in _program_cache.call(_align, pts, weights, ref, framed_ref))
     framed = np.zeros(n_seg, bool)
     for s, m in enumerate(members):
         if m.size >= 3 and mask[:, m].all(axis=1).sum() >= 3:

@@ -103,6 +103,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._errors import DegenerateMotionError, InputError
 from .._math.linalg import generalised_eigvalsh
+from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 from ._cost_lm import PairProblem, block_solve, inv3, levenberg_marquardt
 
@@ -429,11 +430,11 @@ def _settings(method, max_steps, rtol, atol, dtype):
         raise InputError(f"rtol and atol must be finite and >= 0, got rtol={rtol}, atol={atol}.")
     # converged also needs the Newton decrement below this fraction of the cost: a solver
     # can meet its own step criterion while crawling (NCG does, far from the minimum)
-    optimality = jnp.asarray(max(100.0 * rtol, 1e-6), dtype)
+    optimality = to_device(max(100.0 * rtol, 1e-6), dtype)
     if method == "lm":
-        controls = (jnp.asarray(max_steps, jnp.int32), jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype), optimality)
+        controls = (to_device(max_steps, np.int32), to_device(rtol, dtype), to_device(atol, dtype), optimality)
         return ("lm",), controls
-    unused = (jnp.asarray(0, jnp.int32), jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype))
+    unused = (to_device(0, np.int32), to_device(0.0, dtype), to_device(0.0, dtype))
     return (method, int(max_steps), rtol, atol), unused + (optimality,)
 
 

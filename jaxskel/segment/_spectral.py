@@ -72,6 +72,8 @@ from jaxtyping import Array, Bool, Float
 from .._errors import DegenerateMotionError, InputError
 from .._math.order import nanquantiles_np
 from .._math.padding import bucket_size
+from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 from ..io import Trial
 
@@ -607,7 +609,7 @@ def segment_markers(
     for r, frames in enumerate(samplings):
         xs[r, : len(frames), :m] = x_all[frames]
         ms[r, : len(frames), :m] = mask_all[frames]
-    a_all, n_all = _distance_std_batched(jnp.asarray(xs), jnp.asarray(ms))
+    a_all, n_all = _program_cache.call(_distance_std_batched, to_device(xs), to_device(ms))
     a_all = np.asarray(a_all)[:, :m, :m]
     n_all = np.asarray(n_all)[:, :m, :m]
     observed_all = n_all >= min_cooccur

@@ -98,6 +98,8 @@ from .._math.rotation import (
     skew,
     slerp,
 )
+from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 
 if TYPE_CHECKING:
@@ -163,7 +165,12 @@ def kinematic_chain(edges: Int[Array, "J 2"], dtype: Any = jnp.float64) -> Chain
 
     ``path`` solves ``(I - Q) P = C`` with ``Q[s, s'] = [parent(s) = s']`` and
     ``C[s, j] = [child(j) = s]``: row s of P is C[s] plus the row of s's parent.
+
+    A numpy ``edges`` gives a chain of numpy arrays, computed on the host (the same
+    values; eager JAX would compile each operation for every tree size).
     """
+    if isinstance(edges, np.ndarray):
+        return _chain_np(edges, dtype)
     edges = jnp.asarray(edges)
     n_seg = edges.shape[0] + 1
     parent = jnp.full((n_seg,), -1, dtype=edges.dtype).at[edges[:, 1]].set(edges[:, 0])
@@ -174,6 +181,24 @@ def kinematic_chain(edges: Int[Array, "J 2"], dtype: Any = jnp.float64) -> Chain
     is_parent = (edges[None, :, 0] == seg[:, None]).astype(dtype)  # (S_a, J)
     attach = path[:, None, :] * is_parent[None, :, :]
     return Chain(edges=edges, parent=parent, path=path, attach=attach)
+
+
+def _chain_np(edges: np.ndarray, dtype: Any) -> Chain:
+    """:func:`kinematic_chain` of host ``edges``, by walking each segment up to the root."""
+    edges = np.asarray(edges)
+    n_seg = edges.shape[0] + 1
+    parent = np.full(n_seg, -1, dtype=edges.dtype)
+    parent[edges[:, 1]] = edges[:, 0]
+    joint_of = np.full(n_seg, -1)
+    joint_of[edges[:, 1]] = np.arange(edges.shape[0])
+    path = np.zeros((n_seg, edges.shape[0]), dtype=np.dtype(dtype))
+    for s in range(n_seg):
+        u, seen = s, 0
+        while joint_of[u] >= 0 and seen <= n_seg:
+            path[s, joint_of[u]] = 1.0
+            u, seen = parent[u], seen + 1
+    is_parent = (edges[None, :, 0] == np.arange(n_seg)[:, None]).astype(path.dtype)
+    return Chain(edges=edges, parent=parent, path=path, attach=path[:, None, :] * is_parent[None, :, :])
 
 
 # ---------------------------------------------------------------- forward kinematics
@@ -865,7 +890,7 @@ _relative_batch = jax.jit(jax.vmap(_relative_rotations, (0, None)))
 
 def _host_relative(q: np.ndarray, parent: np.ndarray) -> np.ndarray:
     """:func:`_relative_rotations` of (N, S, 4) host arrays, with non-negative ``w``."""
-    rel = np.asarray(_relative_batch(jnp.asarray(q), jnp.asarray(parent)))
+    rel = np.asarray(_program_cache.call(_relative_batch, to_device(q), to_device(parent)))
     return np.where(rel[..., :1] < 0, -rel, rel)
 
 
@@ -884,9 +909,9 @@ def _interpolated(
     first, stop = np.zeros(f_pad, np.int32), np.full(f_pad, f_pad, np.int32)
     for lo, hi in bounds:
         first[lo:hi], stop[lo:hi] = lo, hi
-    prior, start = _interpolated_start(
-        jnp.asarray(rp.reshape(-1, n_seg, 4)), jnp.asarray(kp), jnp.asarray(parent), jnp.asarray(first),
-        jnp.asarray(stop),
+    prior, start = _program_cache.call(
+        _interpolated_start, to_device(rp.reshape(-1, n_seg, 4)), to_device(kp), to_device(parent), to_device(first),
+        to_device(stop),
     )
     shape = (n_trials, f_pad, n_seg, 4)
     return (

@@ -84,6 +84,7 @@ from .._math.rotation_planes import (
     unit_quat_to_matrix,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
@@ -263,25 +264,25 @@ def batch_model(
     joint_segment = np.argsort(np.where(joint_of < 0, -1, joint_of))[1:]
 
     def tup(a):
-        return tuple(jnp.asarray(c, dtype) for c in a)
+        return tuple(to_device(c, dtype) for c in a)
 
     return BatchModel(
         joint_parent=tup(jp),
         joint_child=tup(jc),
         marker_offsets=tup(off),
-        marker_index=jnp.asarray(index),
-        marker_weight=jnp.asarray(w, dtype),
+        marker_index=to_device(index),
+        marker_weight=to_device(w, dtype),
         shape_moment=tup(moment),
-        parent=jnp.asarray(np.maximum(parent, 0), jnp.int32),
-        has_parent=jnp.asarray((parent >= 0)[:, None], dtype),
-        path=jnp.asarray(path, dtype),
-        level_start=jnp.asarray(start),
-        n_levels=jnp.asarray(len(plan.levels), jnp.int32),
-        level_parent=jnp.asarray(lp, dtype),
-        level_valid=jnp.asarray(valid, dtype),
-        order=jnp.asarray(plan.order, jnp.int32),
-        joint_segment=jnp.asarray(joint_segment, jnp.int32),
-        unit=jnp.ones((), dtype),
+        parent=to_device(np.maximum(parent, 0), np.int32),
+        has_parent=to_device((parent >= 0)[:, None], dtype),
+        path=to_device(path, dtype),
+        level_start=to_device(start),
+        n_levels=to_device(len(plan.levels), np.int32),
+        level_parent=to_device(lp, dtype),
+        level_valid=to_device(valid, dtype),
+        order=to_device(plan.order, np.int32),
+        joint_segment=to_device(joint_segment, np.int32),
+        unit=to_device(np.ones((), dtype)),
         width=int(width),
     )
 
@@ -769,10 +770,10 @@ def solve(
         tp = padded(np.asarray(t0, dtype), 0.0)
         qp = padded(np.asarray(q0, dtype), ident)
         pp = padded(np.asarray(prior, dtype), ident)
-    pw = jnp.asarray(prior_weight, dtype)
-    flag = jnp.asarray(horn)
-    limit = jnp.asarray(max_steps, jnp.int32)
-    passes = jnp.asarray(HORN_PASSES, jnp.int32)
+    pw = to_device(prior_weight, dtype)
+    flag = to_device(horn, bool)
+    limit = to_device(max_steps, np.int32)
+    passes = to_device(HORN_PASSES, np.int32)
 
     @float64_scope  # run in the pool's threads too, which do not inherit the caller's mode
     def run(k):

@@ -75,7 +75,9 @@ from .._math.anderson import anderson_step
 from .._math.linalg import spd_solve
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
-from .._math.rotation import quat_to_matrix
+from .._math.rotation import quat_to_matrix, quat_to_matrix_np
+from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 from ..io import Trial
 from ._attachment_weights import attachment_points, attachment_weights, scatter_about_mean
@@ -89,7 +91,6 @@ from ._ik import (
     RESULT_SUCCESSFUL,
     IKModel,
     _host_relative,
-    _poses,
     ik_model,
     kinematic_chain,
 )
@@ -616,7 +617,7 @@ def _refine(
     update), the largest offset move of each update (m) and whether ``xtol`` was met.
     """
     n_m = marker_theta.shape[0]
-    parent = np.asarray(kinematic_chain(jnp.asarray(edges)).parent)
+    parent = kinematic_chain(np.asarray(edges)).parent
     # The IK's shapes (solver_shape): the refinement and the final IK share one compile.
     slots, columns = solver_shape(obs_segment[:n_m], edges, n_m)
     pad = ((0, 0), (0, columns - obs.shape[1]))
@@ -645,11 +646,11 @@ def _refine(
     iterates: list[np.ndarray] = []
     images: list[np.ndarray] = []
     if refine:  # the offset system's fixed inputs, on the device once
-        args = tuple(jnp.asarray(a) for a in (obs, present * obs_base_weight, coef, unknown_segment))
+        args = tuple(to_device(a) for a in (obs, present * obs_base_weight, coef, unknown_segment))
     while refine and len(history) < max_sweeps and not met:
         theta_old = np.concatenate([m_th, j_th]).reshape(-1)
-        theta, cost = _offset_update(
-            jnp.asarray(sol["rotations"]), jnp.asarray(sol["root_position"]), *args, jnp.asarray(theta_old)
+        theta, cost = _program_cache.call(
+            _offset_update, to_device(sol["rotations"]), to_device(sol["root_position"]), *args, to_device(theta_old)
         )
         cost = float(cost)
         theta = np.asarray(theta).reshape(-1)
@@ -843,9 +844,13 @@ def fit_rigid(
     trust = np.ones((n_seg, width))
     if hung.any():
         # the joints of one-marker attachments steer their host by how still they sit in it
-        _, own_rot, own_t, own_rms = (np.array(a) for a in procrustes(pts, weights * ~hung[None], ref0, refw0))
+        _, own_rot, own_t, own_rms = (
+            np.array(a) for a in _program_cache.call(procrustes, pts, weights * ~hung[None], ref0, refw0)
+        )
         trust = attachment_weights(hung, own_rms, scatter_about_mean(pts, weights, own_rot, own_t)[1])
-    ref, gpa_rot, gpa_t, gpa_rms = (np.array(a) for a in procrustes(pts, weights * trust[None], ref0, refw0))
+    ref, gpa_rot, gpa_t, gpa_rms = (
+        np.array(a) for a in _program_cache.call(procrustes, pts, weights * trust[None], ref0, refw0)
+    )
     if hung.any():
         # a point of small weight: its mean and scatter in the final pose, weighed like a marker's
         mean, spread = scatter_about_mean(pts, weights, gpa_rot, gpa_t)
@@ -923,7 +928,7 @@ def fit_rigid(
     present = np.concatenate([ms, jm], axis=1).astype(float)
     obs_segment = np.concatenate([useg, edges[:, 1]]).astype(np.int32)  # joints: on the child
     base_weight = np.concatenate([np.ones(n_used), np.full(n_joints, float(joint_weight) ** 2)])
-    chain_np = np.asarray(kinematic_chain(jnp.asarray(edges)).path)
+    chain_np = kinematic_chain(np.asarray(edges)).path
     coef = np.zeros((n_used + n_joints, n_used + n_joints))
     coef[np.arange(n_used), np.arange(n_used)] = 1.0
     coef[:n_used, n_used:] = chain_np[useg]
@@ -945,7 +950,7 @@ def fit_rigid(
     m_th, j_th, sol, history, offset_steps, done = _refine(
         marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=refine, **common_args
     )
-    rot = np.asarray(quat_to_matrix(sol["rotations"]))  # (F, S, 3, 3)
+    rot = quat_to_matrix_np(sol["rotations"])  # (F, S, 3, 3)
     if refine and np.isfinite(hinge_axis_local[:, 0]).any():
         moved = np.isfinite(hinge_axis_local[:, 0])
         rejected = moved & ~_turns_as_hinge(edges, rot, keep, moved, MAX_OFF_AXIS_REFINED)
@@ -971,14 +976,13 @@ def fit_rigid(
             _, _, sol, _, _, _ = _refine(
                 m_th, j_th, obs, present * keep[:, None], start=sol, refine=False, **common_args
             )
-            rot = np.asarray(quat_to_matrix(sol["rotations"]))
+            rot = quat_to_matrix_np(sol["rotations"])
 
     # Per-marker residuals over the kept frames with the final offsets and poses.
-    trans, _ = jax.vmap(_poses, (0, 0, None, None))(
-        sol["root_position"], jnp.asarray(rot), jnp.stack([jnp.asarray(j_th), jnp.zeros_like(jnp.asarray(j_th))], 1),
-        kinematic_chain(jnp.asarray(edges)),
-    )
-    trans = np.asarray(trans)
+    # segment origins (forward kinematics, ik._poses, on the host): each joint sits at its
+    # parent's offset and at its child's origin
+    step = np.einsum("fjab,jb->fja", rot[:, edges[:, 0]], j_th)
+    trans = np.asarray(sol["root_position"])[:, None, :] + np.einsum("sj,fja->fsa", chain_np, step)
     pred = np.einsum("fmab,mb->fma", rot[:, useg], m_th) + trans[:, useg]
     err2 = np.sum((pred - xs) ** 2, axis=-1)
     w = ms & keep[:, None]

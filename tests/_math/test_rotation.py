@@ -280,6 +280,17 @@ def test_host_form_equals_jax_form(rng):
     np.testing.assert_array_equal(rot.skew_np(a), rot.skew(jnp.asarray(a)))
 
 
+def test_host_quat_to_matrix_equals_jax_form_for_any_scale(rng):
+    q = rng.normal(size=(4, 16, 4)) * rng.uniform(0.1, 10.0, size=(4, 16, 1))  # not unit: scale divided out
+    q[0, 0] = 0.0  # the zero quaternion: no division by zero in either form
+    got = rot.quat_to_matrix_np(q)
+    assert isinstance(got, np.ndarray) and got.dtype == np.float64 and got.shape == (4, 16, 3, 3)
+    np.testing.assert_allclose(got, rot.quat_to_matrix(jnp.asarray(q)), rtol=0, atol=1e-15)
+    unit = q[1:] / np.linalg.norm(q[1:], axis=-1, keepdims=True)
+    np.testing.assert_allclose(got[1:], Rotation.from_quat(unit.reshape(-1, 4), scalar_first=True).as_matrix()
+                               .reshape(3, 16, 3, 3), atol=1e-14)
+
+
 # ---------------------------------------------------------------- gradients
 def _fd_jacobian(f, x, h=1e-6):
     x = np.asarray(x, dtype=float)

@@ -255,6 +255,23 @@ def test_forward_kinematics_reproduces_the_simulator():
     assert set(np.unique(np.asarray(chain.path))) <= {0.0, 1.0}
 
 
+@pytest.mark.parametrize("n_joints", [1, 2, 7, 30])
+def test_host_kinematic_chain_equals_the_traced_one(n_joints):
+    """numpy edges give the chain on the host (numpy arrays), equal to the jnp solve's."""
+    rng = np.random.default_rng(n_joints)
+    parent = [int(rng.integers(0, c)) for c in range(1, n_joints + 1)]
+    edges = np.array([[p, c] for c, p in enumerate(parent, start=1)])[rng.permutation(n_joints)]
+    host, traced = kinematic_chain(edges), kinematic_chain(jnp.asarray(edges))
+    for field in ("edges", "parent", "path", "attach"):
+        assert isinstance(getattr(host, field), np.ndarray), field
+        np.testing.assert_array_equal(getattr(host, field), getattr(traced, field), err_msg=field)
+    # each segment's path holds exactly the joints between it and the root
+    depth = {0: 0}
+    for c, p in enumerate(parent, start=1):
+        depth[c] = depth[p] + 1
+    np.testing.assert_array_equal(host.path.sum(axis=1), [depth[s] for s in range(n_joints + 1)])
+
+
 # ------------------------------------------------------------------------ IK
 def test_ik_fits_markers_to_noise_level_and_finds_the_joints(fitted):
     trial, truth, _, sk, motion = fitted
