@@ -188,8 +188,11 @@ def targets(records: list[dict]) -> list[dict]:
         cold = runs["cold (empty cache)"]["wall_s"]
         second = runs["new recording, cache from run 1"]["wall_s"]
         nocache = runs["new recording, cache disabled"]["wall_s"]
-        out.append({"target": "cold `jaxskel fit` of a new recording < 30 s incl. compilation",
-                    "measured": f"{cold:.1f} s", "met": cold < 30.0, "device": _device(cli)})
+        # issue 48: a first `jaxskel fit` of a 10 s recording after install under 15 s, any later process under 5 s
+        out.append({"target": "cold `jaxskel fit` of a new recording < 15 s incl. compilation",
+                    "measured": f"{cold:.1f} s", "met": cold < 15.0, "device": _device(cli)})
+        out.append({"target": "later `jaxskel fit` process (persistent cache filled) < 5 s",
+                    "measured": f"{second:.1f} s", "met": second < 5.0, "device": _device(cli)})
         saved = (nocache - second) / max(nocache - (warm_fit or 0.0), 1e-9)
         code_only = runs.get("new recording, compiled-code cache from run 4")
         out.append({"target": "second process with the persistent cache pays almost no compilation (>= 80 % saved)",
