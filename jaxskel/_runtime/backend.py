@@ -25,11 +25,14 @@ def uses_cpu(devices: Sequence[Any] | None) -> bool:
 
 def to_device(value: Any, dtype: Any = None) -> jax.Array:
     """``value`` (array-like) as a JAX array on the default device, in ``dtype`` (default:
-    its own), converted on the host: what ``jnp.asarray(value, dtype)`` gives, without
-    compiling a conversion program. Under JAX's default 32-bit mode a 64-bit dtype becomes
-    its 32-bit counterpart, as ``jnp.asarray`` makes it."""
+    its own), converted on the host: what ``jnp.asarray(value, dtype)`` gives (a Python
+    number without ``dtype`` weakly typed), without compiling a conversion program. Under
+    JAX's default 32-bit mode a 64-bit dtype becomes its 32-bit counterpart, as
+    ``jnp.asarray`` makes it."""
     if isinstance(value, jax.Array) and (dtype is None or value.dtype == np.dtype(dtype)):
         return value
+    if dtype is None and type(value) in (int, float, complex):
+        return jax.device_put(value)  # weakly typed, as jnp.asarray makes a Python number
     host = np.asarray(value, dtype=dtype)
     if not jax.config.jax_enable_x64 and host.dtype.itemsize == 8 and host.dtype.kind in "fiuc":
         host = host.astype({"f": np.float32, "i": np.int32, "u": np.uint32, "c": np.complex64}[host.dtype.kind])

@@ -99,6 +99,7 @@ from .._math.rotation import (
     quat_to_matrix,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.compiler_options import jit
 from .._runtime.precision import float64_scope
 
@@ -869,28 +870,28 @@ def normalize_arrays(
     own = np.where(has_own[:, None], own / np.maximum(own_norm, 1e-12)[:, None], 0.0)
     out = _program_cache.call(
         _normalize_core,
-        jnp.asarray(pad(x)),
-        jnp.asarray(pad(q)),
-        jnp.asarray(pad(t)),
-        jnp.asarray(np.arange(size) < n_frames),
-        jnp.asarray(edges_np),
-        jnp.asarray(tree.origin_weights, dtype),
-        jnp.asarray(tree.main_weights, dtype),
-        jnp.asarray(tree.proximal),
-        jnp.asarray(parent),
-        jnp.asarray(tree.leaf),
-        jnp.asarray(np.flatnonzero(tree.leaf)),
-        jnp.asarray(root),
-        jnp.asarray(up, dtype),
-        jnp.asarray(face, dtype),
-        jnp.asarray([w["plane"], w["ratio"], w["spread"]], dtype),
-        jnp.asarray(candidate_tolerance, dtype),
-        jnp.asarray(np.concatenate([search, np.zeros(size - n_frames, bool)])),
-        jnp.asarray(own, dtype),
-        jnp.asarray(has_own),
-        jnp.asarray(tree.chain_proximal),
-        jnp.asarray(tree.chain_distal, dtype),
-        jnp.asarray(tree.chain),
+        to_device(pad(x)),
+        to_device(pad(q)),
+        to_device(pad(t)),
+        to_device(np.arange(size) < n_frames),
+        to_device(edges_np),
+        to_device(tree.origin_weights, dtype),
+        to_device(tree.main_weights, dtype),
+        to_device(tree.proximal),
+        to_device(parent),
+        to_device(tree.leaf),
+        to_device(np.flatnonzero(tree.leaf)),
+        to_device(root),
+        to_device(up, dtype),
+        to_device(face, dtype),
+        to_device([w["plane"], w["ratio"], w["spread"]], dtype),
+        to_device(candidate_tolerance, dtype),
+        to_device(np.concatenate([search, np.zeros(size - n_frames, bool)])),
+        to_device(own, dtype),
+        to_device(has_own),
+        to_device(tree.chain_proximal),
+        to_device(tree.chain_distal, dtype),
+        to_device(tree.chain),
     )
     out = {k: np.asarray(v) for k, v in out.items()}
     d = int(out["default_frame"])

@@ -85,6 +85,7 @@ from .._math.rotation import (
     quat_twist_angle,
 )
 from .._runtime import program_cache as _program_cache
+from .._runtime.backend import to_device
 from .._runtime.compiler_options import jit
 from .._runtime.precision import float64_scope
 from . import _axes
@@ -851,22 +852,22 @@ class Parameterization:
         order = tree_arrays(norm.edges, root).order
         tree = np.stack([order, norm.edges[order, 0], norm.edges[order, 1]], axis=1)
         limb, origins, joints = pose_from_angles(
-            jnp.asarray(pad(a)),
-            jnp.asarray(self.axes),
-            jnp.asarray(self.rest_direction),
-            jnp.asarray(self.rest_rotation),
-            jnp.asarray(pad(norm.limb_rotations[:, root]))
+            to_device(pad(a)),
+            to_device(self.axes),
+            to_device(self.rest_direction),
+            to_device(self.rest_rotation),
+            to_device(pad(norm.limb_rotations[:, root]))
             if root_frames is None
-            else matrix_to_quat(jnp.asarray(pad(frames_r))),
-            jnp.asarray(pad(origins_r)),
-            jnp.asarray(norm.joint_offsets),
-            jnp.asarray(tree),
-            jnp.asarray(root),
+            else matrix_to_quat(to_device(pad(frames_r))),
+            to_device(pad(origins_r)),
+            to_device(norm.joint_offsets),
+            to_device(tree),
+            to_device(root),
         )
         local = norm.limb_frames_local
         centre = np.zeros((norm.n_segments, 3)) if norm.origins_local is None else norm.origins_local
         frames, segment, translations = (
-            np.asarray(v)[:n] for v in _segment_poses(limb, origins, jnp.asarray(local), jnp.asarray(centre))
+            np.asarray(v)[:n] for v in _segment_poses(limb, origins, to_device(local), to_device(centre))
         )
         return Pose(
             joint_positions=np.asarray(joints)[:n],
@@ -974,7 +975,7 @@ def parameterize_normalized(
     max_groups = min(int(max_groups), size)
     limb = np.concatenate([norm.limb_rotations, np.repeat(norm.limb_rotations[-1:], size - n_frames, axis=0)])
     main = np.eye(3, dtype=limb.dtype)[norm.main_axis] * norm.main_sign[:, None]
-    valid = jnp.asarray(np.arange(size) < n_frames)
+    valid = to_device(np.arange(size) < n_frames)
     filter_options = {
         "n_bins": int(n_bins),
         "min_prominence": float(min_prominence),
@@ -997,13 +998,13 @@ def parameterize_normalized(
     cal_frames = np.ones(n_frames, bool) if auto else cal
     filtered = _program_cache.call(
         _filter_stage,
-        jnp.asarray(limb),
-        jnp.asarray(norm.edges),
-        jnp.asarray(main),
-        jnp.asarray(given),
+        to_device(limb),
+        to_device(norm.edges),
+        to_device(main),
+        to_device(given),
         valid,
-        jnp.asarray(np.concatenate([cal_frames, pad_false])),
-        jnp.asarray(norm.default_frame),
+        to_device(np.concatenate([cal_frames, pad_false])),
+        to_device(norm.default_frame),
         **filter_options,
     )
     extracted = _program_cache.call(
@@ -1019,8 +1020,8 @@ def parameterize_normalized(
         filtered["n_axes"],
         extracted["axes"],
         extracted["offsets"],
-        jnp.asarray(norm.default_frame),
-        jnp.asarray(np.concatenate([first, pad_false])),
+        to_device(norm.default_frame),
+        to_device(np.concatenate([first, pad_false])),
         filtered["calibration"],
         filtered["noise"],
     )
