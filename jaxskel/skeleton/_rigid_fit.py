@@ -532,6 +532,29 @@ def _replace_hinges(
 
 
 # ------------------------------------------------------------------ refinement
+def _offset_pairs(coef: np.ndarray, unknown_segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ordered segment pairs ``(a, b)`` whose ``R_a^T R_b`` the offset system needs, and
+    where each pair of unknowns finds its pair.
+
+    Unknowns ``u`` and ``v`` meet in the normal equations only through an observation that
+    depends on both (``coef[r, u] coef[r, v] != 0``): both lie on the path from the root to
+    that observation's segment, so their segments are one another's ancestors. A tree of
+    depth ``d`` needs about ``2 d S`` of the ``S^2`` pairs. Returns ``pairs`` (P, 2) and
+    ``pair_index`` (U, U): the row of ``pairs`` of ``(seg u, seg v)``, or P where no
+    observation joins ``u`` and ``v`` (a zero block).
+    """
+    used = np.asarray(coef) != 0  # (N, U)
+    seg = np.asarray(unknown_segment)
+    shared = (used[:, :, None] & used[:, None, :]).any(axis=0)  # (U, U)
+    wanted = np.unique(np.stack([np.broadcast_to(seg[:, None], shared.shape)[shared],
+                                 np.broadcast_to(seg[None, :], shared.shape)[shared]], axis=1), axis=0)
+    lookup = {(int(a), int(b)): i for i, (a, b) in enumerate(wanted)}
+    pair_index = np.full(shared.shape, len(wanted), dtype=np.int32)
+    for u, v in zip(*np.nonzero(shared)):
+        pair_index[u, v] = lookup[int(seg[u]), int(seg[v])]
+    return wanted.reshape(-1, 2).astype(np.int32), pair_index
+
+
 def _offset_system(
     rot: Float[Array, "F S 3 3"],
     root_position: Float[Array, "F 3"],
@@ -539,6 +562,8 @@ def _offset_system(
     obs_weight: Float[Array, "F N"],
     coef: Float[Array, "N U"],
     unknown_segment: Int[Array, " U"],
+    pairs: Int[Array, "P 2"],
+    pair_index: Int[Array, "U U"],
 ) -> tuple[Float[Array, "3U 3U"], Float[Array, " 3U"], Float[Array, ""]]:
     """Normal equations of the offsets with the poses fixed (a linear least squares).
 
@@ -546,16 +571,19 @@ def _offset_system(
     ``t_root + sum_u coef[r, u] R_seg(u) theta_u``: a marker sums its own offset and the
     parent-side offsets of the joints above it; a joint its own and those above. So
     ``N[u, v] = sum_r coef[r, u] coef[r, v] T[r, seg u, seg v]`` with the per-observation
-    segment-pair sums ``T[r, a, b] = sum_f w_fr R_a(f)^T R_b(f)``: O(F N S^2), never a
-    per-frame (U, U) product. Also returns ``sum w |x - t_root|^2`` for the cost.
+    segment-pair sums ``T[r, a, b] = sum_f w_fr R_a(f)^T R_b(f)``, for the pairs of
+    :func:`_offset_pairs` only (``pair_index``: where each pair of unknowns finds its sum):
+    O(F N P), never a per-frame (U, U) product. Also returns ``sum w |x - t_root|^2`` for
+    the cost.
     """
     n_frames = rot.shape[0]
-    # R_s^T R_t as a broadcast product (a fused elementwise loop) and the frame sum as one
+    # R_a^T R_b as a broadcast product (a fused elementwise loop) and the frame sum as one
     # matrix product: written as two einsums, XLA:CPU would run the first as a tiny matrix
     # product per frame and fuse it into the second.
-    rtr = jnp.sum(rot[:, :, None, :, :, None] * rot[:, None, :, :, None, :], axis=3)
+    rtr = jnp.sum(rot[:, pairs[:, 0], :, :, None] * rot[:, pairs[:, 1], :, None, :], axis=2)  # (F, P, 3, 3)
     pair_sums = (obs_weight.T @ rtr.reshape(n_frames, -1)).reshape((-1,) + rtr.shape[1:])
-    block = pair_sums[:, unknown_segment][:, :, unknown_segment]  # (N, U, U, 3, 3)
+    pair_sums = jnp.concatenate([pair_sums, jnp.zeros_like(pair_sums[:, :1])], axis=1)  # row P: no pair
+    block = pair_sums[:, pair_index]  # (N, U, U, 3, 3)
     normal = jnp.einsum("ru,rv,ruvij->uivj", coef, coef, block)
     target = obs - root_position[:, None, :]
     weighted = jnp.einsum("ru,fra->fua", coef, obs_weight[..., None] * target)
@@ -565,9 +593,11 @@ def _offset_system(
 
 
 @jax.jit
-def _offset_update(rotations, root_position, obs, weight, coef, unknown_segment, theta_old):
+def _offset_update(rotations, root_position, obs, weight, coef, unknown_segment, pairs, pair_index, theta_old):
     """Exact least-squares offsets for fixed poses, and the cost they reach."""
-    normal, rhs, const = _offset_system(quat_to_matrix(rotations), root_position, obs, weight, coef, unknown_segment)
+    normal, rhs, const = _offset_system(
+        quat_to_matrix(rotations), root_position, obs, weight, coef, unknown_segment, pairs, pair_index
+    )
     # A whisper of ridge towards the current offsets keeps directions that no frame
     # constrains (a joint with nothing below it ever seen) where they are.
     ridge = 1e-10 * jnp.trace(normal) / normal.shape[0]
@@ -646,7 +676,8 @@ def _refine(
     iterates: list[np.ndarray] = []
     images: list[np.ndarray] = []
     if refine:  # the offset system's fixed inputs, on the device once
-        args = tuple(to_device(a) for a in (obs, present * obs_base_weight, coef, unknown_segment))
+        args = tuple(to_device(a) for a in (obs, present * obs_base_weight, coef, unknown_segment,
+                                            *_offset_pairs(coef, unknown_segment)))
     while refine and len(history) < max_sweeps and not met:
         theta_old = np.concatenate([m_th, j_th]).reshape(-1)
         theta, cost = _program_cache.call(

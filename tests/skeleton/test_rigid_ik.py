@@ -22,6 +22,7 @@ from jaxskel.segment import combine_trials
 from jaxskel.skeleton import Skeleton, fit_rigid, forward_kinematics, ik_solve, inverse_kinematics
 from jaxskel.skeleton import _ik as ik_module
 from jaxskel.skeleton import _ik_batch as ik_batch
+from jaxskel.skeleton import _rigid_fit as rigid_fit
 from jaxskel.skeleton._ik import kinematic_chain
 from jaxskel.skeleton._rigid_fit import SOLVED_JOINT_WEIGHT
 
@@ -253,6 +254,42 @@ def test_forward_kinematics_reproduces_the_simulator():
     np.testing.assert_allclose(markers, truth.clean_positions, atol=1e-12)
     chain = kinematic_chain(jnp.asarray(truth.edges))
     assert set(np.unique(np.asarray(chain.path))) <= {0.0, 1.0}
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_offset_system_equals_the_per_frame_normal_equations(seed):
+    """The offset update's normal equations, built from the segment pairs one observation
+    joins only, equal sum_f sum_r w A^T A and A^T w (x - t_root) for the per-frame design
+    ``A_fr = [coef[r, u] R_seg(u)(f)]_u`` (a random tree, markers and joints as fit_rigid
+    lays them out)."""
+    rng = np.random.default_rng(seed)
+    n_seg = 6 + seed
+    edges = np.array([[int(rng.integers(0, c)), c] for c in range(1, n_seg)])
+    marker_seg = rng.integers(0, n_seg, size=2 * n_seg)
+    path = kinematic_chain(edges).path  # (S, J): joints between the root and each segment
+    n_m, n_j = len(marker_seg), len(edges)
+    coef = np.zeros((n_m + n_j, n_m + n_j))
+    coef[np.arange(n_m), np.arange(n_m)] = 1.0
+    coef[:n_m, n_m:] = path[marker_seg]
+    coef[n_m:, n_m:] = path[edges[:, 0]] + np.eye(n_j)
+    useg = np.concatenate([marker_seg, edges[:, 0]]).astype(np.int32)
+    n_f = 40
+    rot = Rotation.random(n_f * n_seg, random_state=seed).as_matrix().reshape(n_f, n_seg, 3, 3)
+    root = rng.normal(size=(n_f, 3))
+    obs = rng.normal(size=(n_f, n_m + n_j, 3))
+    w = rng.uniform(0.0, 1.0, size=(n_f, n_m + n_j)) * (rng.uniform(size=(n_f, n_m + n_j)) > 0.2)
+    pairs, pair_index = rigid_fit._offset_pairs(coef, useg)
+    assert len(pairs) < n_seg**2  # only segments on one root path meet
+    with jax.enable_x64(True):
+        normal, rhs, const = (np.asarray(a) for a in rigid_fit._offset_system(
+            jnp.asarray(rot), jnp.asarray(root), jnp.asarray(obs), jnp.asarray(w), jnp.asarray(coef),
+            jnp.asarray(useg), jnp.asarray(pairs), jnp.asarray(pair_index)))
+    design = np.einsum("ru,fuab->fraub", coef, rot[:, useg]).reshape(n_f, n_m + n_j, 3, -1)
+    want_normal = np.einsum("fr,frai,fraj->ij", w, design, design)
+    want_rhs = np.einsum("fr,frai,fra->i", w, design, obs - root[:, None])
+    np.testing.assert_allclose(normal, want_normal, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rhs, want_rhs, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(const, np.sum(w * np.sum((obs - root[:, None]) ** 2, -1)), rtol=1e-12)
 
 
 @pytest.mark.parametrize("n_joints", [1, 2, 7, 30])
