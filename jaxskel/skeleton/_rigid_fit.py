@@ -546,13 +546,12 @@ def _offset_pairs(coef: np.ndarray, unknown_segment: np.ndarray) -> tuple[np.nda
     used = np.asarray(coef) != 0  # (N, U)
     seg = np.asarray(unknown_segment)
     shared = (used[:, :, None] & used[:, None, :]).any(axis=0)  # (U, U)
-    wanted = np.unique(np.stack([np.broadcast_to(seg[:, None], shared.shape)[shared],
-                                 np.broadcast_to(seg[None, :], shared.shape)[shared]], axis=1), axis=0)
-    lookup = {(int(a), int(b)): i for i, (a, b) in enumerate(wanted)}
-    pair_index = np.full(shared.shape, len(wanted), dtype=np.int32)
-    for u, v in zip(*np.nonzero(shared)):
-        pair_index[u, v] = lookup[int(seg[u]), int(seg[v])]
-    return wanted.reshape(-1, 2).astype(np.int32), pair_index
+    u, v = np.nonzero(shared)
+    pairs = np.unique(np.stack([seg[u], seg[v]], axis=1), axis=0).reshape(-1, 2)
+    row = np.full((seg.max(initial=0) + 1,) * 2, len(pairs), dtype=np.int32)  # segment pair -> its row
+    row[pairs[:, 0], pairs[:, 1]] = np.arange(len(pairs))
+    pair_index = np.where(shared, row[seg[:, None], seg[None, :]], len(pairs)).astype(np.int32)
+    return pairs.astype(np.int32), pair_index
 
 
 def _offset_system(
