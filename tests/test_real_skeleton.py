@@ -405,3 +405,30 @@ def test_pronetorun01_legs_by_the_near_tie_pass():
     assert len(bad) <= 1 and not [pair for pair in bad if {"thigh", "shank", "foot"} & set(" ".join(pair).split())]
     named = {frozenset((parts[a], parts[b])) for t in result.near_ties() for a, b in (t.edge,)}
     assert {frozenset(pair) for pair in bad} <= named, (bad, named)
+
+
+@pytest.mark.extended  # about a minute on 2 cores; the mechanism is tested on a synthetic body in tests/skeleton
+def test_a_marker_never_seen_with_its_segment_is_left_out_of_a_default_fit(tmp_path):
+    """The second half of kineticstoolkit's wheelchair sprint: its ``Sync`` light is clustered
+    with the left hand marker but is never seen in a frame with it or with the hand's joint.
+    The default fit raised DegenerateMotionError from the rigid stage ("check
+    joint_positions"); it now leaves the light out of the skeleton, says so, and finishes
+    with the hand and its motion."""
+    trial = jaxskel.load(DATA / "kineticstoolkit" / "kinematics_basket_sprint.c3d")
+    trial = trial.select_frames(slice(trial.n_frames // 2, trial.n_frames))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(trial)
+    said = [str(w.message) for w in caught if issubclass(w.category, jaxskel.DegenerateMotionWarning)]
+    assert any("Sync" in text and "never seen in a frame together" in text for text in said), said
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    labels = list(result.skeleton.marker_labels)
+    assert result.skeleton.diagnostics["unplaced_markers"] == ("Sync",)
+    assert result.skeleton.marker_segment[labels.index("Sync")] == -1
+    assert result.skeleton.marker_segment[labels.index("HandL")] >= 0
+    assert result.motion is not None and np.isfinite(result.motion.joint_positions).all()
+    assert "left out of the skeleton: Sync" in result.summary()
+    result.save(tmp_path / "sprint.h5")
+    saved = jaxskel.load_skeleton(tmp_path / "sprint.h5")
+    assert list(saved.diagnostics["unplaced_markers"]) == ["Sync"]
+    np.testing.assert_array_equal(saved.marker_segment, result.skeleton.marker_segment)

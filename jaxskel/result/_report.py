@@ -69,6 +69,10 @@ def summary_text(result: Any) -> str:
     nonrigid = nonrigid_text(result.skeleton, result.segment_names, result.n_segments) if result.skeleton else None
     if nonrigid is not None:
         lines.append(f"  {nonrigid}")
+    unplaced = result.skeleton.diagnostics.get("unplaced_markers", ()) if result.skeleton else ()
+    if unplaced:
+        lines.append(f"  left out of the skeleton: {', '.join(unplaced)}, never seen in a frame with the other markers "
+                     "and joints of their segment, so nothing places them on it")
     lines += _bone_lines(result, resolution)
     if result.motion is not None:
         rms = np.asarray(result.motion.marker_rms)

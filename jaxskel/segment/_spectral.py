@@ -311,13 +311,16 @@ class Segmentation:
         ]
 
     def within_std(self) -> np.ndarray:
-        """Mean within-segment distance std-dev per segment (NaN for 1-marker segments)."""
+        """Mean within-segment distance std-dev per segment (NaN for 1-marker segments and
+        for groups none of whose pairs is ever seen together)."""
         out = np.full(self.n_segments, np.nan)
         for g in range(self.n_segments):
             idx = np.flatnonzero(self.marker_segment == g)
             if len(idx) > 1:
-                block = self.distance_std[np.ix_(idx, idx)]
-                out[g] = np.nanmean(block[np.triu_indices(len(idx), 1)])
+                pairs = self.distance_std[np.ix_(idx, idx)][np.triu_indices(len(idx), 1)]
+                pairs = pairs[np.isfinite(pairs)]
+                if pairs.size:
+                    out[g] = pairs.mean()
         return out
 
 

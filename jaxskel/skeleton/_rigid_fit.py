@@ -70,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._errors import ConvergenceWarning, DegenerateMotionError, InputError
+from .._errors import ConvergenceWarning, DegenerateMotionError, DegenerateMotionWarning, InputError
 from .._math.anderson import anderson_step
 from .._math.linalg import spd_solve
 from .._math.padding import bucket_size
@@ -167,7 +167,9 @@ class Skeleton:
         one-marker segment's joint in its host's Procrustes alignment, 1 for the other
         joints, and its RMS scatter in the host, m, NaN for the others); when the
         refined poses showed a moved joint turning about more than one axis, the fit is
-        redone without moving it and ``hinges_unmoved`` lists those joints.
+        redone without moving it and ``hinges_unmoved`` lists those joints; markers left
+        out because no frame shows them with the rest of their segment are in
+        ``unplaced_markers`` (see :func:`fit_rigid`).
     segment_names
         (S,) names of the segments (display and export only; ``()`` when not named:
         :meth:`names` derives them from the markers' labels).
@@ -783,7 +785,11 @@ def fit_rigid(
     Returns
     -------
     :class:`Skeleton`. Raises :class:`InputError` for inconsistent inputs and
-    :class:`DegenerateMotionError` when a segment cannot be placed.
+    :class:`DegenerateMotionError` when a segment cannot be placed. A marker never seen
+    in a frame with the other points of its segment (nothing places it there) is left
+    out instead, with a :class:`DegenerateMotionWarning`, as long as its segment keeps a
+    marker or two joints: ``marker_segment`` -1 in the result, its label in
+    ``diagnostics["unplaced_markers"]``.
     """
     x, mask, trial_labels = _as_arrays(trial)
     n_frames, n_markers = mask.shape
@@ -945,8 +951,35 @@ def fit_rigid(
         marker_theta[members[s]] = local[s, : len(members[s])] - origin[s]
     joint_theta = np.stack([point_of(int(edges[j, 0]), j) - origin[edges[j, 0]] for j in range(n_joints)])
     bad = [s for s in range(n_seg) if not np.isfinite(origin[s]).all()]
-    bad += [int(useg[i]) for i in np.flatnonzero(~np.isfinite(marker_theta).all(axis=1))]
     bad += [int(edges[j, 1]) for j in np.flatnonzero(~np.isfinite(joint_theta).all(axis=1))]
+    unplaced = np.flatnonzero(~np.isfinite(marker_theta).all(axis=1))
+    if unplaced.size and not bad:
+        # Markers never seen in a frame with the points that fix their segment (a label
+        # that takes over another's frames, a sync light clustered with a hand): nothing
+        # places them on it. Leave them out of the skeleton, say so, and fit the rest.
+        kept_segment = np.array(seg, copy=True)
+        kept_segment[used[unplaced]] = -1
+        again_kept = np.bincount(kept_segment[kept_segment >= 0], minlength=n_seg)
+        joints_of = np.bincount(edges.reshape(-1), minlength=n_seg)
+        if np.all((again_kept > 0) | (joints_of >= 2)):
+            listed = ", ".join(f"{labels[used[i]]} (segment {int(useg[i])})" for i in unplaced)
+            warnings.warn(
+                f"markers {listed} are never seen in a frame together with the other markers and joints of their "
+                "segment, so the rigid skeleton cannot place them: they are left out of the skeleton and the IK "
+                "(skeleton.diagnostics['unplaced_markers']). A label that takes over another marker's frames, or "
+                "a marker that is not on the body: relabel or remove it",
+                DegenerateMotionWarning,
+                stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
+            )
+            again = fit_rigid(
+                trial, kept_segment, edges, joint_positions, root=root, refine=refine, max_steps=max_steps,
+                max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames, prior_weight=prior_weight,
+                nonrigid_factor=nonrigid_factor, labels=labels, joint_weight=joint_weight,
+                sliding_joints=sliding_joints, landmarks=landmarks,
+            )
+            left_out = tuple(labels[used[i]] for i in unplaced) + tuple(again.diagnostics.get("unplaced_markers", ()))
+            return dataclasses.replace(again, diagnostics={**again.diagnostics, "unplaced_markers": left_out})
+    bad += [int(useg[i]) for i in unplaced]
     if bad:
         raise DegenerateMotionError(
             f"segments {sorted(set(bad))} are never seen together with their joint centres, so "

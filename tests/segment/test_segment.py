@@ -1,6 +1,7 @@
 """Marker segmentation (Kirk et al. §3.1) against synthetic ground truth."""
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -131,6 +132,23 @@ def test_pairs_never_seen_together_are_unobserved_not_rigid():
     assert (0, 8) in seg.unobserved_pairs
     assert np.isnan(seg.distance_std[0, 8])
     assert seg.affinity[0, 8] < 1e-6
+
+
+def test_within_std_of_a_group_never_seen_together_is_nan_without_a_warning():
+    """A two-marker group whose markers are never seen together (a sync light clustered with
+    a hand) has no within-group statistic: NaN, not a RuntimeWarning of numpy's."""
+    trial, _ = synth.simulate(synth.linkage(), duration=20.0, seed=0, noise=0.001)
+    seg = jaxskel.segment.segment_markers(trial, 3)
+    first = np.flatnonzero(seg.marker_segment == 0)[:2]
+    pair = np.where(np.isin(np.arange(trial.n_markers), first), 0, np.maximum(seg.marker_segment, 1))
+    std = seg.distance_std.copy()
+    std[first[0], first[1]] = std[first[1], first[0]] = np.nan
+    two = dataclasses.replace(seg, marker_segment=pair, distance_std=std)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        within = two.within_std()
+    assert np.isnan(within[0])
+    assert np.isfinite(within[1:]).all()
 
 
 def _blocks(groups, within=0.002, across=0.1, seed=0):

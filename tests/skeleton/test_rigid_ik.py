@@ -197,6 +197,40 @@ def test_segment_whose_markers_are_never_all_seen_together():
     assert err.max() < 0.003, err
 
 
+def test_marker_never_seen_with_its_segment_is_left_out_not_fatal():
+    """A marker clustered with a segment but never in a frame with enough of that
+    segment's points to place it (a sync light grouped with a hand, seen only while the
+    hand's markers are hidden) used to stop the whole fit with DegenerateMotionError. It is
+    left out of the skeleton with a warning, and the rest is the fit without it."""
+    body = synth.full_body(seed=3)
+    trial, truth = synth.simulate(body, "calibration", duration=DURATION, seed=3, noise=NOISE)
+    hand = truth.segment_names.index("l_hand")
+    pos = trial.positions.copy()
+    quarter = trial.n_frames // 4
+    pos[-quarter:, truth.marker_segment == hand] = np.nan
+    light = np.full((trial.n_frames, 1, 3), np.nan)
+    light[-quarter:, 0] = [1.5, 0.2, 1.0]  # a fixed light, seen only while the hand is hidden
+    with_light = trial.replace(positions=np.concatenate([pos, light], axis=1), labels=(*trial.labels, "SYNC"))
+    segments = np.append(truth.marker_segment, hand)
+    jp = truth.joint_positions
+    with pytest.warns(jaxskel.DegenerateMotionWarning, match="SYNC .* never seen in a frame together"):
+        sk = fit_rigid(with_light, segments, truth.edges, jp, max_frames=FIT_FRAMES)
+    assert sk.marker_segment[-1] == -1 and sk.diagnostics["unplaced_markers"] == ("SYNC",)
+    assert np.isnan(sk.marker_offsets[-1]).all()
+    without = fit_rigid(with_light, np.append(truth.marker_segment, -1), truth.edges, jp, max_frames=FIT_FRAMES)
+    np.testing.assert_array_equal(sk.bone_lengths, without.bone_lengths)
+    np.testing.assert_array_equal(sk.marker_offsets[:-1], without.marker_offsets[:-1])
+    assert "unplaced_markers" not in without.diagnostics
+    # the light as the hand's only marker, never seen with the wrist: leaving it out would
+    # leave the hand no marker and one joint, so the fit still cannot place the hand
+    only_light = np.append(np.where(truth.marker_segment == hand, -1, truth.marker_segment), hand)
+    wrist = int(np.flatnonzero(truth.edges[:, 1] == hand)[0])
+    no_wrist = jp.copy()
+    no_wrist[-quarter:, wrist] = np.nan
+    with pytest.raises(DegenerateMotionError, match="never seen together with their joint centres"):
+        fit_rigid(with_light, only_light, truth.edges, no_wrist, max_frames=FIT_FRAMES)
+
+
 def test_fit_is_invariant_to_a_rigid_motion_of_the_data(seed0):
     trial, truth, joints, sk, _ = seed0
     rot = random_rotation(7)
