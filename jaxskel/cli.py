@@ -420,10 +420,22 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
             "--osim turns the recording's up axis to OpenSim's Y, but it is unknown here: give it with --up-axis"
         )
     result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
+    needs_motion = [flag for flag, on in (("--parameterize", args.parameterize), ("--plot-angles", plot_angles),
+                                          ("--bvh", args.bvh), ("--trc", args.trc), ("--osim", osim)) if on]
+    if result.motion is None and needs_motion:
+        # the fit could not build the rigid skeleton (its warning says why): keep what it found, then say so
+        result.save(output, overwrite=args.overwrite)
+        if args.plot is not None:
+            from .plots import plot_summary
+
+            plot_summary(result, args.plot, overwrite=args.overwrite)
+        kept = ", ".join(str(w) for w in (output, args.plot) if w is not None)
+        raise jaxskel.InputError(
+            f"this fit has no rigid skeleton and motion (the warning above says why), so {', '.join(needs_motion)} "
+            f"could not be written; {kept} hold(s) its segments, tree and joint centres"
+        )
     extra_groups = {}
     if args.parameterize:
-        if result.motion is None:
-            raise jaxskel.InputError("--parameterize needs the rigid skeleton and IK; drop --no-rigid")
         from .sd06 import normalize, parameterize, write_normalized, write_parameters
 
         up = _up(result.trial.up_axis)
@@ -462,13 +474,9 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         plt.close(figure)
         written.append(plot_angles)
     if args.bvh is not None:
-        if result.motion is None:
-            raise jaxskel.InputError("--bvh needs the rigid skeleton and IK; drop --no-rigid")
         result.export_bvh(args.bvh, overwrite=args.overwrite)
         written.append(args.bvh)
     if args.trc is not None:
-        if result.motion is None:
-            raise jaxskel.InputError("--trc needs the rigid skeleton and IK; drop --no-rigid")
         fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
         if osim is not None:  # the model's frame and names: the TRC OpenSim's IK reads with the model
             from .result import opensim_names, to_opensim_frame

@@ -432,3 +432,35 @@ def test_a_marker_never_seen_with_its_segment_is_left_out_of_a_default_fit(tmp_p
     saved = jaxskel.load_skeleton(tmp_path / "sprint.h5")
     assert list(saved.diagnostics["unplaced_markers"]) == ["Sync"]
     np.testing.assert_array_equal(saved.marker_segment, result.skeleton.marker_segment)
+
+
+def test_a_take_the_rigid_skeleton_cannot_hold_keeps_its_joints_and_says_why(tmp_path, capsys):
+    """The last third of numediart's 03_rolling (769 frames, rolling on the floor): the trunk is seen
+    in 41 frames, never with the left upper arm's other markers, so that arm's joint with the trunk
+    cannot be placed on the arm and the rigid fit cannot be built. That stopped the default fit with
+    DegenerateMotionError ("check joint_positions"). The fit now keeps its segments, tree and joint
+    centres, warns why it has no skeleton (naming the segments and their markers), and the command
+    line writes the result before refusing the outputs that need the skeleton."""
+    from jaxskel.cli import main
+
+    trial = jaxskel.load(DATA / "numediart" / "03_rolling.c3d")
+    third = trial.select_frames(slice(2 * trial.n_frames // 3, trial.n_frames))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = jaxskel.fit_skeleton(third)
+    said = [w for w in caught if issubclass(w.category, jaxskel.DegenerateMotionWarning)
+            and "rigid skeleton could not be fitted" in str(w.message)]
+    assert len(said) == 1 and said[0].filename == __file__, [(w.filename, w.lineno) for w in said]
+    assert "LLUA1" in str(said[0].message) and "no frame shows enough of these points" in str(said[0].message)
+    assert result.skeleton is None and result.motion is None
+    assert len(result.edges) == result.n_segments - 1
+    assert np.isfinite(result.joint_positions).any(axis=(0, 2)).all()  # every joint placed in some frame
+    assert "segments" in result.summary()
+    result.save(tmp_path / "third.h5")
+    source = jaxskel.save_trial(third, tmp_path / "third.h5.c3d")
+    out, bvh = tmp_path / "cli.h5", tmp_path / "cli.bvh"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        code = main(["fit", str(source), "-o", str(out), "--bvh", str(bvh), "--quiet"])
+    assert code == 2 and "--bvh could not be written" in capsys.readouterr().err
+    assert out.is_file() and not bvh.exists()

@@ -254,7 +254,16 @@ class StagePlan:
             require_one_tree(topology, segmentation, names)
         with self.stage(prep, "rigid"):
             if rigid:
-                skeleton = self._rigid(work, segmentation, topology, names, prep.landmarks)
+                try:
+                    skeleton = self._rigid(work, segmentation, topology, names, prep.landmarks)
+                except DegenerateMotionError as error:
+                    # the segments and joints stand without it: keep them, and say why there is no skeleton
+                    warnings.warn(
+                        f"the rigid skeleton could not be fitted, so the result has no skeleton and no motion "
+                        f"(its segments, tree and joint centres stand): {error}",
+                        DegenerateMotionWarning,
+                        stacklevel=STACKLEVEL - 1,
+                    )
         return SkeletonResult(
             input_labels=prep.input_labels, trial=work, cleaning=prep.cleaning, label_mapping=prep.label_mapping,
             segmentation=segmentation, topology=topology, skeleton=skeleton, motion=None, segment_names=names,

@@ -981,9 +981,16 @@ def fit_rigid(
             return dataclasses.replace(again, diagnostics={**again.diagnostics, "unplaced_markers": left_out})
     bad += [int(useg[i]) for i in unplaced]
     if bad:
+        def points(s: int) -> str:
+            shown = [labels[used[i]] for i in members[s]] + [f"joint {int(j)}" for j in seg_joints[s]]
+            return f"segment {s} ({', '.join(shown)})"
+
         raise DegenerateMotionError(
-            f"segments {sorted(set(bad))} are never seen together with their joint centres, so "
-            "their offsets cannot be measured; check joint_positions (NaN everywhere?) or add frames"
+            f"{'; '.join(points(s) for s in sorted(set(bad)))}: no frame shows enough of these points together "
+            "(three of a segment's markers and joint centres, its proximal joint among them) to place the segment's "
+            "offsets, so the rigid skeleton cannot be fitted. Joint centres exist only in frames that show both of "
+            "their segments: give more frames in which these segments and their neighbours are seen together "
+            "(or, calling fit_rigid yourself, check joint_positions for NaN)"
         )
 
     # ---- 2. Global refinement.
