@@ -401,13 +401,12 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: no such recording")
     _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--plot-angles": plot_angles, "--bvh": args.bvh,
                             "--trc": args.trc, "--osim": osim}, args.overwrite)
-    if not (options.skeleton.enabled and options.motion.enabled):  # before any work, not after the fit
-        asked = [flag for flag, on in (("--parameterize", args.parameterize), ("--bvh", args.bvh), ("--trc", args.trc),
-                                       ("--osim", osim)) if on]
-        if asked:
-            raise jaxskel.InputError(
-                f"{', '.join(asked)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
-            )
+    needs_motion = [flag for flag, on in (("--parameterize", args.parameterize), ("--plot-angles", plot_angles),
+                                          ("--bvh", args.bvh), ("--trc", args.trc), ("--osim", osim)) if on]
+    if needs_motion and not (options.skeleton.enabled and options.motion.enabled):  # before any work
+        raise jaxskel.InputError(
+            f"{', '.join(needs_motion)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
+        )
     if output.parent and not output.parent.exists():
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -420,8 +419,6 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
             "--osim turns the recording's up axis to OpenSim's Y, but it is unknown here: give it with --up-axis"
         )
     result = jaxskel.fit_skeleton(trials, options=options, progress=not quiet)
-    needs_motion = [flag for flag, on in (("--parameterize", args.parameterize), ("--plot-angles", plot_angles),
-                                          ("--bvh", args.bvh), ("--trc", args.trc), ("--osim", osim)) if on]
     if result.motion is None and needs_motion:
         # the fit could not build the rigid skeleton (its warning says why): keep what it found, then say so
         result.save(output, overwrite=args.overwrite)

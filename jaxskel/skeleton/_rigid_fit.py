@@ -704,6 +704,13 @@ def _refine(
 
 
 # ------------------------------------------------------------------- fit_rigid
+def _unposed_segments(marker_segment: np.ndarray, edges: np.ndarray, n_segments: int) -> np.ndarray:
+    """Segments with no marker and a single joint: nothing fixes their pose."""
+    markers = np.bincount(marker_segment[marker_segment >= 0], minlength=n_segments)
+    joints = np.bincount(np.asarray(edges).reshape(-1), minlength=n_segments)
+    return np.flatnonzero((markers == 0) & (joints < 2))
+
+
 def _positive_number(value: object) -> bool:
     """A finite real number > 0 (not a bool). The type is checked first, so a string or
     ``None`` gets fit_rigid's own message rather than numpy's TypeError."""
@@ -828,14 +835,12 @@ def fit_rigid(
     n_used = used.size
     n_joints = n_seg - 1
     joint_ok = np.isfinite(jp).all(axis=-1)
-    for s in range(n_seg):
-        n_mark = int((useg == s).sum())
-        n_jts = int(((edges[:, 0] == s) | (edges[:, 1] == s)).sum())
-        if n_mark == 0 and n_jts < 2:
-            raise DegenerateMotionError(
-                f"segment {s} has no markers and a single joint, so nothing fixes its pose; "
-                "merge it into its neighbour or add markers"
-            )
+    unposed = _unposed_segments(seg, edges, n_seg)
+    if unposed.size:
+        raise DegenerateMotionError(
+            f"segment {int(unposed[0])} has no markers and a single joint, so nothing fixes its pose; "
+            "merge it into its neighbour or add markers"
+        )
 
     # Frames: evenly spaced, at most max_frames, among frames showing some markers.
     candidates = np.flatnonzero(mask[:, used].any(axis=1))
@@ -959,9 +964,7 @@ def fit_rigid(
         # places them on it. Leave them out of the skeleton, say so, and fit the rest.
         kept_segment = np.array(seg, copy=True)
         kept_segment[used[unplaced]] = -1
-        again_kept = np.bincount(kept_segment[kept_segment >= 0], minlength=n_seg)
-        joints_of = np.bincount(edges.reshape(-1), minlength=n_seg)
-        if np.all((again_kept > 0) | (joints_of >= 2)):
+        if not _unposed_segments(kept_segment, edges, n_seg).size:
             listed = ", ".join(f"{labels[used[i]]} (segment {int(useg[i])})" for i in unplaced)
             warnings.warn(
                 f"markers {listed} are never seen in a frame together with the other markers and joints of their "
