@@ -19,7 +19,10 @@ the floor that the compilation overhead of a new process is measured from.
 The sequence runs ``repeats`` times, each time with a new empty cache, and the
 fastest of each kind is kept (the machine is shared; other work only adds time).
 Wall seconds of each whole process (interpreter start, imports, reading, fitting,
-writing the result) and its CPU seconds (user + system, all threads). The
+writing the result, exiting) and its CPU seconds (user + system, all threads). The
+processes write and use Python's bytecode cache, as an installed package has it
+(``PYTHONDONTWRITEBYTECODE`` is dropped from their environment: with it, every process
+compiles jaxskel's sources again). The
 in-process warm fit of the pipeline case shows how much of the remaining time is
 computation.
 """
@@ -67,6 +70,8 @@ def run_cli(spec: dict) -> dict:
             for label, path, folder, programs in kinds:
                 # as a user runs it: without the BLAS thread limits the benchmark worker set for itself
                 ours = set(filter(None, os.environ.get("BENCH_SET_THREAD_VARS", "").split(",")))
+                # ... and with Python's bytecode cache, which an installed package has (pip compiles it)
+                ours.add("PYTHONDONTWRITEBYTECODE")
                 env = {k: v for k, v in os.environ.items() if k not in ours}
                 env["JAXSKEL_CACHE_DIR"] = str(tmp / f"{folder}{rep}") if folder else ""
                 env["JAXSKEL_PROGRAM_CACHE"] = "1" if programs else "0"

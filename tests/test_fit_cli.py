@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -514,3 +515,32 @@ def test_a_write_the_system_refuses_after_the_fit_is_one_line_and_leaves_the_old
     )
     assert out.read_bytes() == b"the old result"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.trc", "r.h5"]
+
+
+_COMMAND = """
+import atexit, pathlib, sys
+mark = pathlib.Path(sys.argv[1])
+atexit.register(lambda: mark.write_text("atexit ran"))
+sys.argv = ["jaxskel", *sys.argv[2:]]
+from jaxskel.cli import run
+run()
+"""
+
+
+def test_the_command_exits_fast_yet_flushes_its_output_and_runs_exit_handlers(linkage_trial, tmp_path):
+    """``jaxskel`` (jaxskel.cli.run) ends with os._exit after the exit work: its printed
+    report is complete, a handler registered with atexit still runs, and the exit code is
+    main's, for success and for a refused input alike."""
+    trial, _ = linkage_trial
+    src = tmp_path / "chain.c3d"
+    trial.save(src)
+    env = {**os.environ, "JAXSKEL_CACHE_DIR": ""}
+    ok = subprocess.run([sys.executable, "-c", _COMMAND, str(tmp_path / "a.txt"), "info", str(src)],
+                        capture_output=True, text=True, timeout=300, env=env)
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert f"labels: {', '.join(trial.labels)}" in ok.stdout and ok.stdout.rstrip().endswith("}")
+    assert (tmp_path / "a.txt").read_text() == "atexit ran"
+    bad = subprocess.run([sys.executable, "-c", _COMMAND, str(tmp_path / "b.txt"), "info", str(tmp_path / "no.c3d")],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert bad.returncode == 2 and "jaxskel: error:" in bad.stderr
+    assert (tmp_path / "b.txt").read_text() == "atexit ran"

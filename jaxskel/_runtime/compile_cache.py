@@ -108,5 +108,6 @@ def enable_compile_cache() -> Path | None:
     if os.environ.get("JAXSKEL_PROGRAM_CACHE", "1") != "0":
         from . import program_cache as _program_cache
 
-        _program_cache.set_directory(cache + "-programs")
+        if _program_cache.current_directory() != Path(cache + "-programs"):  # a second call keeps what is loaded
+            _program_cache.set_directory(cache + "-programs")
     return Path(cache)

@@ -24,6 +24,15 @@ The x64 flag is read in the calling thread: JAX's 64-bit mode is per thread, and
 turns it on only for its own calls (:mod:`jaxskel._runtime.precision`). The in-process
 programs are kept by the same flag.
 
+Reading ahead. A new process still reads each program's compiled code from the
+persistent cache on its first call (XLA:CPU deserialising and linking it: 0.2-0.4 s for a
+solver). Each process lists the programs it used, in the order of their first call, in
+``<directory>/recently-used.json``; :func:`read_ahead` (the ``jaxskel`` command's fitting
+subcommands call it first thing) reads that list's programs in a background thread while
+the process imports its modules and prepares the recording, and :func:`call` takes each
+one from there (waiting for it if it is being read). A listed program that this process
+does not call costs the background thread its reading, never a result.
+
 With no directory set (the default, and every library call outside the command line)
 :func:`call` is ``fn(*args, **static)``. The exported program is not differentiable
 (serialized without VJP), so tracers bypass it too. Any failure to export, read or
@@ -33,8 +42,10 @@ used first, beyond ``MAX_BYTES``.
 
 from __future__ import annotations
 
+import atexit
 import functools
 import hashlib
+import json
 import logging
 import os
 import threading
@@ -47,18 +58,26 @@ import jax
 from .._errors import InputError
 from ..io import atomic_output
 
-__all__ = ["call", "set_directory"]
+__all__ = ["call", "current_directory", "read_ahead", "set_directory"]
 
 #: Bound of the saved programs (bytes; a fit's programs take a small fraction of it, see
 #: docs/bench/evidence_from_docstrings.md).
 MAX_BYTES = 256 * 2**20
 _SUFFIX = ".jaxexport"
 
+#: The list of the programs the last process used (read_ahead), and its length bound.
+_RECENT = "recently-used.json"
+MAX_READ_AHEAD = 32
+
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
 _state: dict[str, Any] = {"directory": None}
 #: In-process programs by (function, static arguments, treedef, leaf types).
 _programs: dict[tuple, Callable] = {}
+#: This process's programs in the order of their first call: file name -> (x64, compiler options).
+_used: dict[str, tuple[bool, dict | None]] = {}
+#: Programs listed for reading ahead, by file name, not yet taken by a call.
+_ahead: dict[str, _Ahead] = {}
 
 
 def set_directory(path: str | os.PathLike | None) -> None:
@@ -70,6 +89,83 @@ def set_directory(path: str | os.PathLike | None) -> None:
     with _lock:
         _state["directory"] = None if path is None else Path(path)
         _programs.clear()
+        _used.clear()
+        _ahead.clear()  # a reader still running skips what is no longer listed
+
+
+def current_directory() -> Path | None:
+    """Where programs are saved and loaded (``None``: plain jitted calls)."""
+    return _state["directory"]
+
+
+class _Ahead:
+    """One program listed for reading ahead: read by the background thread unless a call
+    takes it first (``taken``); ``done`` is set once it is read (``compiled``: the
+    compiled program, or ``None`` where reading it failed)."""
+
+    __slots__ = ("compiled", "done", "name", "options", "started", "taken", "x64")
+
+    def __init__(self, name: str, x64: bool, options: dict | None) -> None:
+        self.name, self.x64, self.options = name, x64, options
+        self.started = self.taken = False
+        self.done = threading.Event()
+        self.compiled: Any = None
+
+
+def read_ahead() -> threading.Thread | None:
+    """Start reading, in a background thread, the programs the last process listed
+    (module docstring); ``None`` where no directory is set or nothing is listed.
+
+    The thread is a daemon, stopped after its current program when the process exits.
+    """
+    folder = _state["directory"]
+    if folder is None:
+        return None
+    try:
+        listed = json.loads((folder / _RECENT).read_text())
+        entries = [_Ahead(str(e["file"]), bool(e["x64"]), e.get("options")) for e in listed[:MAX_READ_AHEAD]]
+    except (OSError, ValueError, TypeError, KeyError) as exc:  # none yet, or unreadable: nothing to read
+        _log.debug("no programs to read ahead: %s", exc)
+        return None
+    entries = [e for e in entries if (folder / e.name).is_file() and "/" not in e.name]
+    if not entries:
+        return None
+    with _lock:
+        _ahead.update((e.name, e) for e in entries)
+    thread = threading.Thread(target=_read_listed, args=(folder, entries), name="jaxskel-read-ahead", daemon=True)
+    stop = threading.Event()
+    thread.stop = stop  # type: ignore[attr-defined]
+    atexit.register(_stop_reading, thread)
+    thread.start()
+    return thread
+
+
+def _stop_reading(thread: threading.Thread) -> None:
+    thread.stop.set()  # type: ignore[attr-defined]
+    thread.join(timeout=30.0)
+
+
+def _read_listed(folder: Path, entries: list[_Ahead]) -> None:
+    """The background thread of :func:`read_ahead`."""
+    stop = threading.current_thread().stop  # type: ignore[attr-defined]
+    for entry in entries:
+        with _lock:
+            skip = entry.taken or _ahead.get(entry.name) is not entry or stop.is_set()
+            entry.started = not skip
+        if skip:
+            entry.done.set()
+            continue
+        try:
+            exported = _load(folder / entry.name)
+            if exported is not None:
+                with jax.enable_x64(entry.x64):
+                    jitted = jax.jit(exported.call, compiler_options=entry.options or None)
+                    entry.compiled = jitted.lower(*exported.in_avals).compile()
+        except Exception as exc:  # noqa: BLE001 - the call then loads it itself
+            _log.debug("program %s not read ahead: %s", entry.name, exc)
+            entry.compiled = None
+        finally:
+            entry.done.set()
 
 
 def _supported() -> bool:
@@ -139,6 +235,15 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
         )).encode()
     ).hexdigest()[:40]
     path = folder / f"{name}-{key}{_SUFFIX}"
+    options = getattr(fn, "compiler_options", None) or None
+    _note_use(folder, path.name, options)
+    ahead = _ahead.pop(path.name, None)  # the caller holds _lock
+    if ahead is not None:
+        ahead.taken = True
+        if ahead.started:
+            ahead.done.wait()
+            if ahead.compiled is not None:
+                return _Compiled(ahead.compiled, path, options)
     exported = _load(path)
     if exported is None:
 
@@ -153,7 +258,43 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
             _log.debug("program %s not exported: %s", name, exc)
             return flat  # the plain jitted call
     # the function's own compiler options (jaxskel._runtime.compiler_options.jit), if any
-    return jax.jit(exported.call, compiler_options=getattr(fn, "compiler_options", None) or None)
+    return jax.jit(exported.call, compiler_options=options)
+
+
+class _Compiled:
+    """A program read ahead: its compiled executable, called directly. Arguments of other
+    types than it was compiled for (which the memo of :func:`call` rules out) would be
+    a ``TypeError``: then the program is loaded and jitted as without reading ahead."""
+
+    def __init__(self, compiled: Any, path: Path, options: dict | None) -> None:
+        self._compiled, self._path, self._options, self._jitted = compiled, path, options, None
+
+    def __call__(self, *leaves: Any) -> Any:
+        if self._jitted is None:
+            try:
+                return self._compiled(*leaves)
+            except TypeError as exc:
+                _log.debug("program %s read ahead for other types (%s): jitted again", self._path.name, exc)
+                exported = _load(self._path)
+                if exported is None:
+                    raise
+                self._jitted = jax.jit(exported.call, compiler_options=self._options)
+        return self._jitted(*leaves)
+
+
+def _note_use(folder: Path, name: str, options: dict | None) -> None:
+    """Add a program to this process's list (the caller holds ``_lock``) and write the
+    list for the next process's :func:`read_ahead`."""
+    if name in _used:
+        return
+    _used[name] = (bool(jax.config.jax_enable_x64), options)
+    listed = [{"file": n, "x64": x64, "options": o} for n, (x64, o) in _used.items()][:MAX_READ_AHEAD]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with atomic_output(folder / _RECENT, overwrite=True, suffix="") as tmp:
+            tmp.write_text(json.dumps(listed))
+    except (OSError, InputError, TypeError, ValueError) as exc:  # read-only folder, options not JSON: no list
+        _log.debug("list of used programs not written: %s", exc)
 
 
 def _load(path: Path) -> Any:

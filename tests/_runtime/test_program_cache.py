@@ -1,11 +1,13 @@
 """Saved exported programs (jaxskel._runtime.program_cache): same answers as the jitted call,
-one program per distinct trace, loaded (not re-traced) by a fresh process, robust to
-torn files, bounded, and out of the way of differentiation."""
+one program per distinct trace, loaded (not re-traced) by a fresh process, read ahead by
+the next process, robust to torn files, bounded, and out of the way of differentiation."""
 
 import functools
+import json
 import os
 import subprocess
 import sys
+import threading
 
 import equinox as eqx
 import h5py
@@ -161,13 +163,92 @@ def test_folder_is_bounded_oldest_use_first(folder, monkeypatch):
     assert len(_saved(folder)) == 1 and _saved(folder) != [first]
 
 
+def _listed(folder):
+    return [entry["file"] for entry in json.loads((folder / "recently-used.json").read_text())]
+
+
+def _refuse_loading(monkeypatch):
+    def refuse(path):
+        raise AssertionError(f"{path.name} read again")
+
+    monkeypatch.setattr(_program_cache, "_load", refuse)
+
+
+def test_the_programs_a_process_used_are_read_ahead_by_the_next(folder, monkeypatch):
+    """A process lists its programs in the order of their first call; the next one reads
+    them in a background thread (read_ahead) and its calls take them from there: the same
+    answers, in both 64-bit modes, without reading the disk again."""
+    x, model32, x32 = jnp.arange(4.0) / 3, _model(dtype=jnp.float32), jnp.arange(4.0, dtype=jnp.float32)
+    want = [_program_cache.call(_program, _model(), x, scale=2.0),
+            _program_cache.call(_program, _model(), x, scale=3.0)]
+    with jax.enable_x64(False):
+        want.append(_program_cache.call(_program, model32, x32, scale=2.0))
+    saved = {p.name: p.stat().st_mtime for p in folder.glob("*.jaxexport")}
+    assert len(_listed(folder)) == 3 and set(_listed(folder)) == set(saved)
+    assert sorted(_listed(folder), key=saved.get) == _listed(folder)  # first call first
+    _program_cache.set_directory(folder)  # a new process
+    reader = _program_cache.read_ahead()
+    reader.join(timeout=120)
+    assert not reader.is_alive()
+    _no_export(monkeypatch)
+    _refuse_loading(monkeypatch)
+    got = [_program_cache.call(_program, _model(), x, scale=2.0),
+           _program_cache.call(_program, _model(), x, scale=3.0)]
+    with jax.enable_x64(False):
+        got.append(_program_cache.call(_program, model32, x32, scale=2.0))
+    for g, w in zip(got, want):
+        assert g["y"].dtype == w["y"].dtype
+        np.testing.assert_array_equal(g["y"], w["y"])
+        assert float(g["value"]) == float(w["value"])
+
+
+def test_a_call_that_comes_before_the_reader_reads_its_program_itself(folder, monkeypatch):
+    """The reader is held on the first listed program; a call of the second meanwhile loads
+    it itself, and the reader, let go, skips it. A listed program that is gone is skipped."""
+    x = jnp.arange(4.0)
+    want = [float(_program_cache.call(_program, _model(), x, scale=s)["value"]) for s in (1.0, 2.0, 3.0)]
+    first, second, third = _listed(folder)
+    (folder / third).unlink()
+    _program_cache.set_directory(folder)
+    held, loads, load = threading.Event(), [], _program_cache._load
+
+    def slow_load(path):
+        loads.append((threading.current_thread().name, path.name))
+        if path.name == first:
+            assert held.wait(timeout=60)
+        return load(path)
+
+    monkeypatch.setattr(_program_cache, "_load", slow_load)
+    reader = _program_cache.read_ahead()
+    assert float(_program_cache.call(_program, _model(), x, scale=2.0)["value"]) == want[1]
+    held.set()
+    reader.join(timeout=120)
+    assert float(_program_cache.call(_program, _model(), x, scale=1.0)["value"]) == want[0]
+    assert float(_program_cache.call(_program, _model(), x, scale=3.0)["value"]) == want[2]
+    assert loads[:2] == [("jaxskel-read-ahead", first), ("MainThread", second)]
+    assert ("jaxskel-read-ahead", second) not in loads and ("jaxskel-read-ahead", third) not in loads
+
+
+def test_nothing_listed_or_an_unreadable_list_reads_nothing(folder):
+    assert _program_cache.read_ahead() is None
+    (folder / "recently-used.json").write_text("{not json")
+    assert _program_cache.read_ahead() is None
+    x = jnp.arange(4.0)
+    assert float(_program_cache.call(_program, _model(), x, scale=2.0)["value"]) == float(
+        _program(_model(), x, scale=2.0)["value"])
+    assert len(_listed(folder)) == 1
+
+
 _COUNTING_FIT = """
 import sys, jax
 exports = []
 export = jax.export.export
 jax.export.export = lambda *a, **k: exports.append(1) or export(*a, **k)
 from jaxskel.cli import main
+from jaxskel._runtime import program_cache
 code = main(["fit", sys.argv[1], "-o", sys.argv[2], "--quiet"])
+print("read ahead", sum(isinstance(p, program_cache._Compiled) for p in program_cache._programs.values()))
+print("programs", len(program_cache._programs))
 print("exports", len(exports))
 sys.exit(code)
 """
@@ -181,12 +262,15 @@ def test_second_command_line_process_loads_every_solver_program(tmp_path):
     src = tmp_path / "chain.c3d"
     trial.save(src)
     env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
-    counts = []
+    counts, ahead = [], []
     for name in ("first.h5", "second.h5"):
         run = subprocess.run([sys.executable, "-c", _COUNTING_FIT, str(src), str(tmp_path / name)], env=env,
                              capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr[-3000:]
         counts.append(int(run.stdout.split("exports")[-1]))
+        ahead.append((int(run.stdout.split("read ahead")[-1].split()[0]), int(run.stdout.split("programs")[-1].split()[0])))
+    # the second process took every program from its read-ahead thread (jaxskel fit calls read_ahead)
+    assert ahead[0][0] == 0 and ahead[1][0] == ahead[1][1] == ahead[0][1] >= 3
     (programs,) = (tmp_path / "cache").glob("*-programs")
     names = {p.name.split("-")[0] for p in programs.glob("*.jaxexport")}
     assert {"_chunk_solve", "_solve", "solve_chunk"} <= names
