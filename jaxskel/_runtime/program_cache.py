@@ -132,22 +132,23 @@ def read_ahead() -> threading.Thread | None:
         return None
     with _lock:
         _ahead.update((e.name, e) for e in entries)
-    thread = threading.Thread(target=_read_listed, args=(folder, entries), name="jaxskel-read-ahead", daemon=True)
     stop = threading.Event()
-    thread.stop = stop  # type: ignore[attr-defined]
-    atexit.register(_stop_reading, thread)
+    thread = threading.Thread(target=_read_listed, args=(folder, entries, stop), name="jaxskel-read-ahead",
+                              daemon=True)
+    atexit.register(_stop_reading, thread, stop)
     thread.start()
     return thread
 
 
-def _stop_reading(thread: threading.Thread) -> None:
-    thread.stop.set()  # type: ignore[attr-defined]
+def _stop_reading(thread: threading.Thread, stop: threading.Event) -> None:
+    stop.set()
     thread.join(timeout=30.0)
 
 
-def _read_listed(folder: Path, entries: list[_Ahead]) -> None:
-    """The background thread of :func:`read_ahead`."""
-    stop = threading.current_thread().stop  # type: ignore[attr-defined]
+def _read_listed(folder: Path, entries: list[_Ahead], stop: threading.Event) -> None:
+    """The background thread of :func:`read_ahead`: each listed program, compiled from the
+    persistent cache (``entry.compiled``, a :class:`jax.stages.Compiled`), unless a call
+    took it first or ``stop`` is set."""
     for entry in entries:
         with _lock:
             skip = entry.taken or _ahead.get(entry.name) is not entry or stop.is_set()
@@ -242,8 +243,8 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
         ahead.taken = True
         if ahead.started:
             ahead.done.wait()
-            if ahead.compiled is not None:
-                return _Compiled(ahead.compiled, path, options)
+            if ahead.compiled is not None:  # compiled for exactly these argument types (the memo's key)
+                return ahead.compiled
     exported = _load(path)
     if exported is None:
 
@@ -259,27 +260,6 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
             return flat  # the plain jitted call
     # the function's own compiler options (jaxskel._runtime.compiler_options.jit), if any
     return jax.jit(exported.call, compiler_options=options)
-
-
-class _Compiled:
-    """A program read ahead: its compiled executable, called directly. Arguments of other
-    types than it was compiled for (which the memo of :func:`call` rules out) would be
-    a ``TypeError``: then the program is loaded and jitted as without reading ahead."""
-
-    def __init__(self, compiled: Any, path: Path, options: dict | None) -> None:
-        self._compiled, self._path, self._options, self._jitted = compiled, path, options, None
-
-    def __call__(self, *leaves: Any) -> Any:
-        if self._jitted is None:
-            try:
-                return self._compiled(*leaves)
-            except TypeError as exc:
-                _log.debug("program %s read ahead for other types (%s): jitted again", self._path.name, exc)
-                exported = _load(self._path)
-                if exported is None:
-                    raise
-                self._jitted = jax.jit(exported.call, compiler_options=self._options)
-        return self._jitted(*leaves)
 
 
 def _note_use(folder: Path, name: str, options: dict | None) -> None:

@@ -247,7 +247,7 @@ jax.export.export = lambda *a, **k: exports.append(1) or export(*a, **k)
 from jaxskel.cli import main
 from jaxskel._runtime import program_cache
 code = main(["fit", sys.argv[1], "-o", sys.argv[2], "--quiet"])
-print("read ahead", sum(isinstance(p, program_cache._Compiled) for p in program_cache._programs.values()))
+print("read ahead", sum(isinstance(p, jax.stages.Compiled) for p in program_cache._programs.values()))
 print("programs", len(program_cache._programs))
 print("exports", len(exports))
 sys.exit(code)
@@ -268,7 +268,7 @@ def test_second_command_line_process_loads_every_solver_program(tmp_path):
                              capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr[-3000:]
         counts.append(int(run.stdout.split("exports")[-1]))
-        ahead.append((int(run.stdout.split("read ahead")[-1].split()[0]), int(run.stdout.split("programs")[-1].split()[0])))
+        ahead.append(tuple(int(run.stdout.split(word)[-1].split()[0]) for word in ("read ahead", "programs")))
     # the second process took every program from its read-ahead thread (jaxskel fit calls read_ahead)
     assert ahead[0][0] == 0 and ahead[1][0] == ahead[1][1] == ahead[0][1] >= 3
     (programs,) = (tmp_path / "cache").glob("*-programs")
