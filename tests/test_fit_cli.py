@@ -320,7 +320,7 @@ def test_wrong_units_are_caught(linkage_trial):
 
 def test_too_few_markers_and_bad_arguments(linkage_trial):
     trial, _ = linkage_trial
-    with pytest.raises(jaxskel.DegenerateMotionError, match="at least 3"):
+    with pytest.raises(jaxskel.DegenerateMotionError, match=r"has 2 marker\(s\); a skeleton needs at least 3"):
         jaxskel.fit_skeleton(trial.select_markers([0, 1]))
     with pytest.raises(jaxskel.InputError):
         jaxskel.fit_skeleton("walk.c3d")
@@ -544,3 +544,19 @@ def test_the_command_exits_fast_yet_flushes_its_output_and_runs_exit_handlers(li
                          capture_output=True, text=True, timeout=300, env=env)
     assert bad.returncode == 2 and "jaxskel: error:" in bad.stderr
     assert (tmp_path / "b.txt").read_text() == "atexit ran"
+
+
+def test_a_recording_shorter_than_the_cleaning_keeps_says_so_and_what_to_change(linkage_trial):
+    """A 0.3 s take: cleaning drops every marker (runs under min_run_s); the error says
+    how many markers the recording had, why they went and which setting to change, and
+    with that setting cleaning keeps them."""
+    trial, _ = linkage_trial
+    short = trial.select_frames(slice(0, int(0.3 * trial.rate)))
+    with pytest.raises(jaxskel.DegenerateMotionError) as caught:
+        jaxskel.fit_skeleton(short, ik=False)
+    text = str(caught.value)
+    assert f"only 0 of the recording's {trial.n_markers} markers remain after cleaning" in text
+    assert f"Cleaning dropped {trial.n_markers} ({trial.labels[0]}: longest contiguous run 0.300 s" in text
+    assert "min_run_s" in text and "--min-run-s" in text and "0.30 s long" in text
+    kept, report = jaxskel.clean.clean(short, **jaxskel.CleanOptions(min_run_s=0.1).kwargs())
+    assert report.dropped == {} and kept.n_markers == trial.n_markers

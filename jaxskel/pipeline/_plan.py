@@ -217,6 +217,8 @@ class StagePlan:
                 prep.merge_input = work
                 work, mapping = merge_labels(work)
                 work, report = self._clean_merged(work, report)
+        if work.n_markers < 3:
+            raise DegenerateMotionError(_too_few_markers(work, combined, report))
         with self.stage(prep, "segment"), device:
             work, left_out, prep.landmarks = self._leave_out(work)
             segmentation = dataclasses.replace(self._segment(work), left_out=left_out,
@@ -392,11 +394,6 @@ class StagePlan:
         return work.drop_markers(list(left.labels)), dict(left.reasons), work.select_markers(list(left.labels))
 
     def _segment(self, work: Trial, n_segments: int | None = None) -> Segmentation:
-        if work.n_markers < 3:
-            raise DegenerateMotionError(
-                f"only {work.n_markers} markers remain after cleaning; a skeleton needs at least 3 "
-                "(see result.cleaning / the cleaning report for what was dropped)"
-            )
         s = self.options.segment
         n = s.n_segments if n_segments is None else n_segments
         return segment_markers(work, n, seed=self.options.seed, **s.kwargs())
@@ -462,3 +459,21 @@ class StagePlan:
                                     landmarks=landmarks)
         return self.motion(again, self.refit(again))
 
+
+def _too_few_markers(work: Trial, given: Trial, report: CleaningReport | None) -> str:
+    """Why a fit has fewer than 3 markers to segment: how many the recording had, and
+    what cleaning dropped (the first few markers and reasons) with what to change."""
+    if given.n_markers < 3:
+        return f"the recording has {given.n_markers} marker(s); a skeleton needs at least 3"
+    text = f"only {work.n_markers} of the recording's {given.n_markers} markers remain after cleaning; " \
+        "a skeleton needs at least 3"
+    dropped = dict(report.dropped) if report is not None else {}
+    if not dropped:
+        return text
+    shown = "; ".join(f"{label}: {why}" for label, why in list(dropped.items())[:3])
+    more = f" and {len(dropped) - 3} more" if len(dropped) > 3 else ""
+    text += f". Cleaning dropped {len(dropped)} ({shown}{more})"
+    if any("min_run_s" in why for why in dropped.values()):
+        text += (f". The recording is {given.duration:.2f} s long: give a shorter min_run_s (FitOptions(clean="
+                 "CleanOptions(min_run_s=...)), --min-run-s), or fit a longer recording")
+    return text
