@@ -264,17 +264,24 @@ def _program(folder: Path, fn: Callable, static: dict, treedef: Any, types: tupl
 
 def _note_use(folder: Path, name: str, options: dict | None) -> None:
     """Add a program to this process's list (the caller holds ``_lock``) and write the
-    list for the next process's :func:`read_ahead`."""
+    list for the next process's :func:`read_ahead`.
+
+    Written to a temporary sibling and renamed into place, without ``fsync``: the list is
+    a hint, read once by the next process, which ignores a list it cannot parse (a
+    crash may leave one stale or empty), and a fit writes it about a dozen times.
+    """
     if name in _used:
         return
     _used[name] = (bool(jax.config.jax_enable_x64), options)
     listed = [{"file": n, "x64": x64, "options": o} for n, (x64, o) in _used.items()][:MAX_READ_AHEAD]
+    tmp = folder / f".{_RECENT}.{os.getpid()}.tmp"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        with atomic_output(folder / _RECENT, overwrite=True, suffix="") as tmp:
-            tmp.write_text(json.dumps(listed))
-    except (OSError, InputError, TypeError, ValueError) as exc:  # read-only folder, options not JSON: no list
+        tmp.write_text(json.dumps(listed))
+        os.replace(tmp, folder / _RECENT)
+    except (OSError, TypeError, ValueError) as exc:  # read-only folder, options not JSON: no list
         _log.debug("list of used programs not written: %s", exc)
+        tmp.unlink(missing_ok=True)
 
 
 def _load(path: Path) -> Any:
@@ -317,7 +324,8 @@ def _prune(folder: Path) -> None:
         except OSError:
             continue
         entries.append((st.st_mtime, st.st_size, p))
-    for p in folder.glob(f".*{_SUFFIX}.*.tmp"):  # left by a process killed while writing
+    # left by a process killed while writing
+    for p in [*folder.glob(f".*{_SUFFIX}.*.tmp"), *folder.glob(f".{_RECENT}.*.tmp")]:
         try:
             if time.time() - p.stat().st_mtime > 3600:
                 p.unlink()

@@ -464,7 +464,8 @@ def _too_few_markers(work: Trial, given: Trial, report: CleaningReport | None) -
     """Why a fit has fewer than 3 markers to segment: how many the recording had, and
     what cleaning dropped (the first few markers and reasons) with what to change."""
     if given.n_markers < 3:
-        return f"the recording has {given.n_markers} marker(s); a skeleton needs at least 3"
+        return f"the recording has {given.n_markers} marker{'' if given.n_markers == 1 else 's'}; " \
+            "a skeleton needs at least 3"
     text = f"only {work.n_markers} of the recording's {given.n_markers} markers remain after cleaning; " \
         "a skeleton needs at least 3"
     dropped = dict(report.dropped) if report is not None else {}

@@ -303,8 +303,12 @@ def test_stale_temporary_files_are_cleared(folder):
     os.utime(stale, (1, 1))
     fresh = folder / "._program-1.jaxexport.cd34.tmp"  # perhaps another process writing now
     fresh.write_bytes(b"being written")
+    stale_list = folder / ".recently-used.json.12345.tmp"  # the list of a process killed while writing it
+    stale_list.write_text("[")
+    os.utime(stale_list, (1, 1))
     _program_cache.call(_program, _model(), jnp.arange(4.0), scale=2.0)
-    assert not stale.exists() and fresh.exists()
+    assert not stale.exists() and fresh.exists() and not stale_list.exists()
+    assert not list(folder.glob(".recently-used.json.*.tmp"))  # this process's own list was renamed into place
 
 
 def test_a_program_that_cannot_be_exported_runs_as_the_jitted_call(folder, monkeypatch):
