@@ -726,15 +726,16 @@ def run() -> NoReturn:
     Python's own exit frees every module, and with them JAX's compiled programs one
     mapping at a time: 0.5-0.8 s at the end of a fit that only returns memory the
     operating system takes back at once. Everything an exit must do still happens: the
-    threads that are not daemons are joined, the ``atexit`` handlers run (logging's
-    flush, temporary folders, jaxskel's read-ahead thread) and the output streams are
-    flushed; then the process ends with :func:`os._exit`. An exception that escapes
-    :func:`main` (a bug) takes Python's usual way out, with its traceback.
+    ``atexit`` handlers run (logging's flush, temporary folders, jaxskel's read-ahead
+    thread) and the output streams are flushed; then the process ends with
+    :func:`os._exit`. Where a thread that is not a daemon still runs (a library's pool
+    left open), or an exception escapes :func:`main` (a bug), the process takes Python's
+    usual way out, which shuts such threads down in its own order.
     """
     code = main()
-    for thread in threading.enumerate():
-        if thread is not threading.current_thread() and not thread.daemon:
-            thread.join()
+    here = threading.current_thread()
+    if any(t is not here and not t.daemon and t.is_alive() for t in threading.enumerate()):
+        sys.exit(code)
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -518,9 +518,12 @@ def test_a_write_the_system_refuses_after_the_fit_is_one_line_and_leaves_the_old
 
 
 _COMMAND = """
-import atexit, pathlib, sys
+import atexit, pathlib, sys, threading, time
 mark = pathlib.Path(sys.argv[1])
 atexit.register(lambda: mark.write_text("atexit ran"))
+if sys.argv[2] == "--with-thread":  # a thread that is not a daemon, still running when main returns
+    sys.argv.pop(2)
+    threading.Thread(target=lambda: (time.sleep(3), mark.with_suffix(".thread").write_text("done"))).start()
 sys.argv = ["jaxskel", *sys.argv[2:]]
 from jaxskel.cli import run
 run()
@@ -530,7 +533,8 @@ run()
 def test_the_command_exits_fast_yet_flushes_its_output_and_runs_exit_handlers(linkage_trial, tmp_path):
     """``jaxskel`` (jaxskel.cli.run) ends with os._exit after the exit work: its printed
     report is complete, a handler registered with atexit still runs, and the exit code is
-    main's, for success and for a refused input alike."""
+    main's, for success and for a refused input alike; a thread that is not a daemon and
+    still runs is waited for."""
     trial, _ = linkage_trial
     src = tmp_path / "chain.c3d"
     trial.save(src)
@@ -544,6 +548,10 @@ def test_the_command_exits_fast_yet_flushes_its_output_and_runs_exit_handlers(li
                          capture_output=True, text=True, timeout=300, env=env)
     assert bad.returncode == 2 and "jaxskel: error:" in bad.stderr
     assert (tmp_path / "b.txt").read_text() == "atexit ran"
+    # a thread that is not a daemon: Python's usual exit, which waits for it
+    waits = subprocess.run([sys.executable, "-c", _COMMAND, str(tmp_path / "c.txt"), "--with-thread", "info",
+                            str(src)], capture_output=True, text=True, timeout=300, env=env)
+    assert waits.returncode == 0 and (tmp_path / "c.thread").read_text() == "done"
 
 
 def test_a_recording_shorter_than_the_cleaning_keeps_says_so_and_what_to_change(linkage_trial):
