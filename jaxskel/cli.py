@@ -37,7 +37,7 @@ from ._runtime.program_cache import read_ahead
 if TYPE_CHECKING:
     from .pipeline._options import FitOptions, SettingInfo
 
-# The pipeline's modules (jax, scikit-learn, scipy: most of a run's first second) are
+# The stages' modules (with scikit-learn and scipy: most of a run's first second) are
 # imported where a command needs them, after main() has started reading its compiled
 # programs ahead (jaxskel._runtime.program_cache.read_ahead).
 
@@ -644,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
     own_process()  # the command's process is jaxskel's own: single-threaded Eigen, before JAX starts
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((word for word in argv if not word.startswith("-")), None)
-    if command in _FITTING and enable_compile_cache() is not None:
+    if command in _FITTING and not {"-h", "--help"} & set(argv) and enable_compile_cache() is not None:
         read_ahead()  # the last fit's compiled programs, read while the pipeline's modules import
     args = _parser().parse_args(argv)
     if args.version:

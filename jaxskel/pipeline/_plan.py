@@ -394,6 +394,11 @@ class StagePlan:
         return work.drop_markers(list(left.labels)), dict(left.reasons), work.select_markers(list(left.labels))
 
     def _segment(self, work: Trial, n_segments: int | None = None) -> Segmentation:
+        if work.n_markers < 3:  # after a corrected label merge (prepare says why for the recording itself)
+            raise DegenerateMotionError(
+                f"only {work.n_markers} markers remain after merging labels; a skeleton needs at least 3 "
+                "(see the label mapping and the cleaning report for what was merged or dropped)"
+            )
         s = self.options.segment
         n = s.n_segments if n_segments is None else n_segments
         return segment_markers(work, n, seed=self.options.seed, **s.kwargs())
