@@ -32,14 +32,13 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 from ._runtime.compile_cache import enable_compile_cache
 from ._runtime.own_process import own_process
-from ._runtime.program_cache import read_ahead
 
 if TYPE_CHECKING:
     from .pipeline._options import FitOptions, SettingInfo
 
 # The stages' modules (with scikit-learn and scipy: most of a run's first second) are
 # imported where a command needs them, after main() has started reading its compiled
-# programs ahead (jaxskel._runtime.program_cache.read_ahead).
+# programs ahead (enable_compile_cache, jaxskel._runtime.program_cache.read_ahead).
 
 __all__ = ["main", "run"]
 
@@ -644,8 +643,8 @@ def main(argv: list[str] | None = None) -> int:
     own_process()  # the command's process is jaxskel's own: single-threaded Eigen, before JAX starts
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((word for word in argv if not word.startswith("-")), None)
-    if command in _FITTING and not {"-h", "--help"} & set(argv) and enable_compile_cache() is not None:
-        read_ahead()  # the last fit's compiled programs, read while the pipeline's modules import
+    if command in _FITTING and not {"-h", "--help"} & set(argv):
+        enable_compile_cache()  # and read the last fit's compiled programs while the stages' modules import
     args = _parser().parse_args(argv)
     if args.version:
         from ._version import __version__
@@ -655,7 +654,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         _parser().print_help()
         return 1
-    enable_compile_cache()
+    enable_compile_cache(read_ahead=False)
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
         return _run(args)

@@ -60,7 +60,7 @@ def machine_cache_dir(base: Path) -> Path:
     return base / f"{platform.machine() or 'cpu'}-{digest}"
 
 
-def enable_compile_cache() -> Path | None:
+def enable_compile_cache(*, read_ahead: bool = True) -> Path | None:
     """Keep compiled programs on disk, so that a later process skips compiling them.
 
     Turns on JAX's persistent compilation cache (so a second process skips XLA's
@@ -76,6 +76,11 @@ def enable_compile_cache() -> Path | None:
     disable both, ``JAXSKEL_PROGRAM_CACHE=0`` to disable the saved programs alone.
     Returns the directory of the compiled code, or ``None`` when no cache could be set
     up (disabled, no ``filelock``, a read-only home or an old jax).
+
+    ``read_ahead``: also start reading, in a background (daemon) thread, the compiled
+    programs the last process that used this cache listed
+    (:func:`jaxskel._runtime.program_cache.read_ahead`), so that this process's first fit
+    finds them loaded; once per process. ``False``: nothing is read before it is called.
     """
     base = os.environ.get("JAXSKEL_CACHE_DIR", str(Path.home() / ".cache" / "jaxskel" / "jax"))
     if not base:
@@ -110,4 +115,6 @@ def enable_compile_cache() -> Path | None:
 
         if _program_cache.current_directory() != Path(cache + "-programs"):  # a second call keeps what is loaded
             _program_cache.set_directory(cache + "-programs")
+        if read_ahead:
+            _program_cache.read_ahead()
     return Path(cache)

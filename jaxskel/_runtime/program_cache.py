@@ -27,8 +27,9 @@ programs are kept by the same flag.
 Reading ahead. A new process still reads each program's compiled code from the
 persistent cache on its first call (XLA:CPU deserialising and linking it: 0.2-0.4 s for a
 solver). Each process lists the programs it used, in the order of their first call, in
-``<directory>/recently-used.json``; :func:`read_ahead` (the ``jaxskel`` command's fitting
-subcommands call it first thing) reads that list's programs in a background thread while
+``<directory>/recently-used.json``; :func:`read_ahead` (started by
+:func:`~jaxskel._runtime.compile_cache.enable_compile_cache`, which the ``jaxskel``
+command's fitting subcommands call first thing) reads that list's programs in a background thread while
 the process imports its modules and prepares the recording, and :func:`call` takes each
 one from there (waiting for it if it is being read). A listed program that this process
 does not call costs the background thread its reading, never a result.
@@ -88,6 +89,7 @@ def set_directory(path: str | os.PathLike | None) -> None:
         path = None
     with _lock:
         _state["directory"] = None if path is None else Path(path)
+        _state["read_ahead"] = None
         _programs.clear()
         _used.clear()
         _ahead.clear()  # a reader still running skips what is no longer listed
@@ -114,13 +116,15 @@ class _Ahead:
 
 def read_ahead() -> threading.Thread | None:
     """Start reading, in a background thread, the programs the last process listed
-    (module docstring); ``None`` where no directory is set or nothing is listed.
+    (module docstring); ``None`` where no directory is set, nothing is listed, or this
+    process already read ahead from this directory.
 
     The thread is a daemon, stopped after its current program when the process exits.
     """
     folder = _state["directory"]
-    if folder is None:
+    if folder is None or _state.get("read_ahead") == folder:
         return None
+    _state["read_ahead"] = folder
     try:
         listed = json.loads((folder / _RECENT).read_text())
         entries = [_Ahead(str(e["file"]), bool(e["x64"]), e.get("options")) for e in listed[:MAX_READ_AHEAD]]

@@ -67,6 +67,8 @@ from jaxskel import synth
 hits = []
 jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
 where = jaxskel.enable_compile_cache()
+from jaxskel._runtime import program_cache
+listed = len(program_cache._ahead)  # programs the last process listed, being read ahead (none taken yet)
 body = synth.full_body(seed=0)
 _, truth = synth.simulate(body, "calibration", duration=10.0, rate=60.0, seed=0)
 from scipy.spatial.transform import Rotation
@@ -74,21 +76,23 @@ quats = Rotation.from_matrix(truth.segment_rotations.reshape(-1, 3, 3)).as_quat(
 param = jaxskel.sd06.parameterize_arrays(truth.joint_positions, body.edges, quats.reshape(*truth.segment_rotations.shape[:2], 4),
                                          root=body.root, segment_translations=truth.segment_translations, rate=60.0)
 np.save(__import__("sys").argv[1], param.angles)
-print(where, len(hits))
+print(where, len(hits), listed, sum(isinstance(p, jax.stages.Compiled) for p in program_cache._programs.values()))
 """
 
 
 def test_the_public_opt_in_serves_the_sd06_programs_to_a_second_process(tmp_path):
     """``jaxskel.enable_compile_cache()`` (what the command does, for a library user): the SD06
     stages, compiled with their own XLA options, are saved by one process and loaded by the next,
-    with the same angles."""
+    read ahead in a background thread, with the same angles."""
     env = {**os.environ, "JAXSKEL_CACHE_DIR": str(tmp_path / "cache")}
     runs = [subprocess.run([sys.executable, "-c", _SD06_PROBE, str(tmp_path / f"angles{i}.npy")], env=env,
                            capture_output=True, text=True, timeout=300) for i in range(2)]
     assert all(r.returncode == 0 for r in runs), [r.stderr[-2000:] for r in runs]
-    (where0, hits0), (where1, hits1) = (r.stdout.split() for r in runs)
+    (where0, hits0, listed0, ahead0), (where1, hits1, listed1, ahead1) = (r.stdout.split() for r in runs)
     assert where0 == where1 == str(machine_cache_dir(tmp_path / "cache"))
     assert int(hits0) == 0 and int(hits1) >= 4  # at least the four SD06 stage programs
+    # the second process read the first one's programs ahead (a thread started by enable_compile_cache) and used them
+    assert int(listed0) == int(ahead0) == 0 and int(listed1) >= 4 and int(ahead1) >= 4
     saved = {p.name.split("-")[0] for p in Path(where0 + "-programs").glob("*.jaxexport")}
     assert {"_normalize_core", "_filter_stage", "_axes_stage", "_angles_stage"} <= saved
     import numpy as np

@@ -188,6 +188,7 @@ def test_the_programs_a_process_used_are_read_ahead_by_the_next(folder, monkeypa
     assert sorted(_listed(folder), key=saved.get) == _listed(folder)  # first call first
     _program_cache.set_directory(folder)  # a new process
     reader = _program_cache.read_ahead()
+    assert _program_cache.read_ahead() is None  # once per process
     reader.join(timeout=120)
     assert not reader.is_alive()
     _no_export(monkeypatch)
@@ -232,6 +233,7 @@ def test_a_call_that_comes_before_the_reader_reads_its_program_itself(folder, mo
 def test_nothing_listed_or_an_unreadable_list_reads_nothing(folder):
     assert _program_cache.read_ahead() is None
     (folder / "recently-used.json").write_text("{not json")
+    _program_cache.set_directory(folder)  # a new process
     assert _program_cache.read_ahead() is None
     x = jnp.arange(4.0)
     assert float(_program_cache.call(_program, _model(), x, scale=2.0)["value"]) == float(
