@@ -68,7 +68,10 @@ hits = []
 jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if "cache_hits" in event else None)
 where = jaxskel.enable_compile_cache()
 from jaxskel._runtime import program_cache
+import threading
 listed = len(program_cache._ahead)  # programs the last process listed, being read ahead (none taken yet)
+for reader in [t for t in threading.enumerate() if t.name == "jaxskel-read-ahead"]:
+    reader.join()  # (a call that comes first reads its program itself: tests/_runtime/test_program_cache.py)
 body = synth.full_body(seed=0)
 _, truth = synth.simulate(body, "calibration", duration=10.0, rate=60.0, seed=0)
 from scipy.spatial.transform import Rotation
