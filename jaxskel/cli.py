@@ -643,8 +643,9 @@ def main(argv: list[str] | None = None) -> int:
     own_process()  # the command's process is jaxskel's own: single-threaded Eigen, before JAX starts
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((word for word in argv if not word.startswith("-")), None)
-    if command in _FITTING and not {"-h", "--help"} & set(argv):
-        enable_compile_cache()  # and read the last fit's compiled programs while the stages' modules import
+    if command is not None and not {"-h", "--help"} & set(argv):
+        # before the stages' modules import: a fitting command reads its compiled programs meanwhile
+        enable_compile_cache(read_ahead=command in _FITTING)
     args = _parser().parse_args(argv)
     if args.version:
         from ._version import __version__
@@ -654,7 +655,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         _parser().print_help()
         return 1
-    enable_compile_cache(read_ahead=False)
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
         return _run(args)

@@ -113,8 +113,9 @@ def enable_compile_cache(*, read_ahead: bool = True) -> Path | None:
     if os.environ.get("JAXSKEL_PROGRAM_CACHE", "1") != "0":
         from . import program_cache as _program_cache
 
-        if _program_cache.current_directory() != Path(cache + "-programs"):  # a second call keeps what is loaded
-            _program_cache.set_directory(cache + "-programs")
+        programs = Path(cache + "-programs")
+        if _program_cache.current_directory() != programs:  # a second call keeps what is loaded
+            _program_cache.set_directory(programs)
         if read_ahead:
             _program_cache.read_ahead()
     return Path(cache)

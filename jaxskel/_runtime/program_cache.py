@@ -72,7 +72,8 @@ MAX_READ_AHEAD = 32
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
-_state: dict[str, Any] = {"directory": None}
+#: The folder of the saved programs, and the one this process has read ahead from.
+_state: dict[str, Any] = {"directory": None, "read_ahead": None}
 #: In-process programs by (function, static arguments, treedef, leaf types).
 _programs: dict[tuple, Callable] = {}
 #: This process's programs in the order of their first call: file name -> (x64, compiler options).
@@ -122,7 +123,7 @@ def read_ahead() -> threading.Thread | None:
     The thread is a daemon, stopped after its current program when the process exits.
     """
     folder = _state["directory"]
-    if folder is None or _state.get("read_ahead") == folder:
+    if folder is None or _state["read_ahead"] == folder:
         return None
     _state["read_ahead"] = folder
     try:
@@ -166,9 +167,8 @@ def _read_listed(folder: Path, entries: list[_Ahead], stop: threading.Event) -> 
                 with jax.enable_x64(entry.x64):
                     jitted = jax.jit(exported.call, compiler_options=entry.options or None)
                     entry.compiled = jitted.lower(*exported.in_avals).compile()
-        except Exception as exc:  # noqa: BLE001 - the call then loads it itself
+        except Exception as exc:  # noqa: BLE001 - the call then loads it itself (compiled stays None)
             _log.debug("program %s not read ahead: %s", entry.name, exc)
-            entry.compiled = None
         finally:
             entry.done.set()
 
