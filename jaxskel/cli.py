@@ -444,27 +444,33 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
             f"this fit has no rigid skeleton and motion (the warning above says why), so {', '.join(needs_motion)} "
             f"could not be written; {kept} hold(s) its segments, tree and joint centres"
         )
-    extra_groups = {}
+    extra_groups, sd06_error = {}, None
     if args.parameterize:
         from .sd06 import AXIS_COUNTS, normalize, parameterize, write_normalized, write_parameters
 
         up = _up(result.trial.up_axis)
         axis_count = args.axis_count or AXIS_COUNTS[0]
-        if calibration_trial is not None:  # posed on the fitted skeleton, as jaxskel track poses a take
-            tracked = jaxskel.track(result.skeleton, jaxskel.load(calibration_trial, **_load_kwargs(calibration_trial, args)))
-            if tracked.failed:
-                raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: {tracked[0].error}")
-            params = parameterize(result.skeleton, result.motion, up_axis=up, calibration=tracked[0].result.motion,
-                                  facing=args.facing, axis_count=axis_count)
-            norm = params.normalization
+        try:
+            if calibration_trial is not None:  # posed on the fitted skeleton, as jaxskel track poses a take
+                tracked = jaxskel.track(result.skeleton,
+                                        jaxskel.load(calibration_trial, **_load_kwargs(calibration_trial, args)))
+                if tracked.failed:
+                    raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: {tracked[0].error}")
+                params = parameterize(result.skeleton, result.motion, up_axis=up, calibration=tracked[0].result.motion,
+                                      facing=args.facing, axis_count=axis_count)
+                norm = params.normalization
+            else:
+                norm = normalize(result.skeleton, result.motion, up_axis=up, calibration=window, facing=args.facing)
+                params = parameterize(result.skeleton, result.motion, norm, calibration=window,
+                                      axis_count=axis_count)
+        except (jaxskel.InputError, jaxskel.DegenerateMotionError) as error:
+            # the fit stands without its parameterisation: write the rest, then say why (below)
+            sd06_error = error
         else:
-            norm = normalize(result.skeleton, result.motion, up_axis=up, calibration=window, facing=args.facing)
-            params = parameterize(result.skeleton, result.motion, norm, calibration=window,
-                                  axis_count=axis_count)
-        extra_groups = {
-            "normalized": lambda g: write_normalized(g, norm),
-            "parameters": lambda g: write_parameters(g, params),
-        }
+            extra_groups = {
+                "normalized": lambda g: write_normalized(g, norm),
+                "parameters": lambda g: write_parameters(g, params),
+            }
     result.save(output, overwrite=args.overwrite, extra_groups=extra_groups)
     written = [output]
     if args.plot is not None:
@@ -472,7 +478,7 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
 
         plot_summary(result, args.plot, overwrite=args.overwrite)
         written.append(args.plot)
-    if plot_angles is not None:
+    if plot_angles is not None and sd06_error is None:
         from .plots import plot_joint_angles
 
         segments = result.skeleton.names()
@@ -501,6 +507,12 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if not quiet:
         print(result.summary())
         print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
+    if sd06_error is not None:
+        skipped = f" and {plot_angles} was not written" if plot_angles is not None else ""
+        raise type(sd06_error)(
+            f"--parameterize failed: {sd06_error}. So {output} holds the fit without its parameterisation{skipped}; "
+            f"written: {', '.join(str(w) for w in written)}"
+        )
     return 0
 
 

@@ -138,18 +138,23 @@ def test_a_duplicated_marker_changes_nothing_and_maps_to_its_original(fitted, li
 
 
 @pytest.mark.extended  # about 2 min on 2 cores; the split search's other cases run by default
-def test_a_count_that_does_not_help_does_not_end_the_split_search():
+def test_a_count_that_does_not_help_does_not_end_the_split_search(capsys):
     """A random 10-segment tree where the eigengap (8) joins two pairs of segments, each
     joint moving its markers little. One more segment cuts one pair but leaves the other
     (as many flagged markers as before, so 9 is not kept); the search goes on to 10, which
     flags nothing: the true tree, no warning. (Before, the search stopped at 9 and kept 8
-    groups with a wrong tree.)"""
+    groups with a wrong tree.) The progress bar counts the two refits' stages: it ends at
+    its total, 6 + 2 x 4 stages (before, it ran past a total of 6 and lost it)."""
+    import re
+
     from helpers import segment_map
 
     trial, truth = synth.simulate(synth.random_tree(10, seed=10), duration=20.0, seed=10, noise=0.001, gaps=2)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = jaxskel.fit_skeleton(trial, ik=False)
+        result = jaxskel.fit_skeleton(trial, ik=False, progress=True)
+    bar = [line for line in re.split(r"[\r\n]", capsys.readouterr().err) if line.startswith("fit_skeleton")][-1]
+    assert re.search(r"\| (\d+)/(\d+) \[", bar).groups() == ("14", "14"), bar
     seg = result.segmentation
     assert (seg.count_rule, seg.eigengap_segments, seg.split_from, result.n_segments) == ("split", 8, 8, 10)
     assert result.skeleton.nonrigid_markers == ()
@@ -421,6 +426,19 @@ def test_cli_parameterize_writes_normalized_and_parameters(tmp_path, monkeypatch
     with pytest.raises(SystemExit):
         main(["fit", str(src), "-o", str(tmp_path / "x.h5"), "--parameterize", "--calibration", "10:5"])
     assert not (tmp_path / "x.h5").exists()
+    capsys.readouterr()
+    # a parameterisation that fails after the fit (a window past the recording's end) loses
+    # nothing: the fit's outputs are written without it, and the error says so
+    kept, bvh, unused = tmp_path / "kept.h5", tmp_path / "kept.bvh", tmp_path / "kept_angles.png"
+    assert main(["fit", str(src), "-o", str(kept), "--bvh", str(bvh), "--parameterize", "--calibration",
+                 "5000:6000", "--plot-angles", str(unused), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxskel: error: --parameterize failed: the calibration window") and "Traceback" not in err
+    assert f"{kept} holds the fit without its parameterisation and {unused} was not written" in err
+    back = jaxskel.load_result(kept)
+    assert not hasattr(back, "parameters") and not hasattr(back, "normalized")
+    assert list(back.segments.names) == list(jaxskel.load_result(out).segments.names)
+    assert bvh.stat().st_size > 0 and not unused.exists()
     # no window: each joint's main movements, found automatically; --plot-angles draws the angles
     out3, angles_png = tmp_path / "body3.h5", tmp_path / "angles.png"
     assert main(["fit", str(src), "-o", str(out3), "--parameterize", "--plot-angles", str(angles_png), "--quiet"]) == 0

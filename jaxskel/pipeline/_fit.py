@@ -82,12 +82,20 @@ def fit_skeleton(
             bar.set_postfix_str(name)
             bar.update(1)
 
-        plan = StagePlan(options, segment_names=plan.segment_names, on_stage=on_stage)
+        def on_more(names: tuple[str, ...]) -> None:  # a grown segment count runs stages again
+            bar.total += len(names)
+            bar.refresh()
+
+        plan = StagePlan(options, segment_names=plan.segment_names, on_stage=on_stage, on_more=on_more)
     # float64 for this call only; a with block, not a decorator, so that no frame is added
     # between the fit's warnings and the caller they point at
     with float64():
         try:
-            return plan.fit(trial_or_trials, stacklevel=3)  # the caller of fit_skeleton
+            result = plan.fit(trial_or_trials, stacklevel=3)  # the caller of fit_skeleton
+            if bar is not None and bar.n != bar.total:  # a grown count's refit that stopped early
+                bar.total = bar.n
+                bar.refresh()
+            return result
         finally:
             if bar is not None:
                 bar.close()

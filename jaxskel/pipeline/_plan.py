@@ -25,7 +25,7 @@ import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -155,7 +155,9 @@ class StagePlan:
     """The stages of a fit with given :class:`FitOptions`, in order.
 
     ``segment_names`` names the segments (display only; default: from their markers'
-    labels). ``on_stage(name)`` is called as each stage ends (a progress bar).
+    labels). ``on_stage(name)`` is called as each stage ends (a progress bar);
+    ``on_more(names)`` when the plan will run stages beyond :attr:`stages` (a grown segment
+    count: ``split``, then the joint and skeleton stages again), before they run.
     ``device_lock`` is held around the preparation's stages that run JAX code (label
     merging, segmentation), so that other threads may run the numpy-only ones
     (:func:`jaxskel.fit_batch`).
@@ -164,7 +166,11 @@ class StagePlan:
     options: FitOptions = dataclasses.field(default_factory=FitOptions)
     segment_names: tuple[str, ...] | None = None
     on_stage: Callable[[str], None] | None = None
+    on_more: Callable[[tuple[str, ...]], None] | None = None
     device_lock: contextlib.AbstractContextManager[Any] | None = None
+
+    #: The stages :meth:`refit` reports, in order (what a grown count runs again).
+    refit_stages: ClassVar[tuple[str, ...]] = ("joint costs", "tree joints", "rigid")
 
     @property
     def stages(self) -> tuple[str, ...]:
@@ -254,7 +260,7 @@ class StagePlan:
         rigid = o.skeleton.enabled and len(topology.edges) > 0
         if rigid:
             require_one_tree(topology, segmentation, names)
-        with self.stage(prep, "rigid"):
+        with self.stage(prep, "rigid") if o.skeleton.enabled else contextlib.nullcontext():  # as `stages` lists
             if rigid:
                 try:
                     skeleton = self._rigid(work, segmentation, topology, names, prep.landmarks)
@@ -274,6 +280,9 @@ class StagePlan:
 
     def motion(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:
         """``result`` with its motion: inverse kinematics, as the options ask."""
+        o = self.options
+        if not (o.motion.enabled and o.skeleton.enabled):  # not a stage of this plan (`stages`)
+            return dataclasses.replace(result, timings=dict(prep.timings))
         with self.stage(prep, "ik"):
             motion = self._inverse_kinematics(result.skeleton, result.trial)
         return dataclasses.replace(result, motion=motion, timings=dict(prep.timings))
@@ -323,6 +332,8 @@ class StagePlan:
             n += 1
             if not crowded or n > min(base.max_segments, result.trial.n_markers):
                 break
+            if self.on_more is not None:
+                self.on_more(("split", *self.refit_stages))
             with self.stage(prep, "split"):
                 grown = self._segment(result.trial, n)
             grown = dataclasses.replace(

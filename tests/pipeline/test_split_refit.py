@@ -190,11 +190,32 @@ def test_a_split_that_leaves_a_marker_alone_is_discarded():
         grown.append(p.segmentation)
         return _result(p, p.segmentation, ())
 
-    out = _grow(prep, lambda p: _result(p, p.segmentation, group), refit)
+    reported = []
+    plan = _Plan(FitOptions(), first=lambda p: _result(p, p.segmentation, group), again=refit,
+                 on_stage=reported.append, on_more=lambda names: reported.append(names))
+    out = plan.grow_count(prep)
     # 4 and 5 groups of 9 markers: each leaves a marker alone, neither is kept
     assert [g.n_segments for g in grown] == [3 + k for k in range(1, MAX_SPLITS + 1)]
     assert all(1 in np.bincount(g.marker_segment) for g in grown)
     assert out.segmentation is prep.segmentation
+    # each refit is announced (a progress bar's total grows) before its split runs; the
+    # stub refit reports no stages, the motion stub none either
+    assert reported == [("split", *StagePlan.refit_stages), "split"] * MAX_SPLITS
+
+
+def test_a_fit_reports_the_stages_its_plan_lists_and_a_refit_those_a_grown_count_announces():
+    """What a progress bar counts: a whole fit reports its plan's `stages` (no "ik" with
+    ik=False: before, it reported one stage more than it listed, and a bar ran past its
+    total), a refit `refit_stages`."""
+    trial, _ = synth.simulate(synth.linkage(), duration=4.0, seed=0, noise=0.001)
+    for settings in ({"ik": False}, {"rigid": False}):
+        reported = []
+        plan = StagePlan(FitOptions.from_settings(**settings), on_stage=reported.append)
+        plan.fit(trial)
+        assert tuple(reported) == plan.stages, settings
+    reported = []
+    StagePlan(FitOptions(), on_stage=reported.append).refit(_prep(trial))
+    assert tuple(reported) == StagePlan.refit_stages
 
 
 def test_a_count_not_kept_does_not_end_the_search(trial):
