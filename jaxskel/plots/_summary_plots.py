@@ -122,7 +122,9 @@ def plot_skeleton_3d(result: Any, frame: int | None = None, ax: Any = None) -> A
     cmap = plt.get_cmap("tab20")
     for s in range(result.n_segments):
         pts = x[seg == s]
-        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=12, color=cmap(s % 20), label=result.segment_names[s])
+        pts = pts[np.isfinite(pts).all(axis=1)]  # the markers seen in this frame
+        # one colour as a list: a bare RGBA tuple beside 2-4 points reads as one colour per point
+        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=12, color=[cmap(s % 20)], label=result.segment_names[s])
     jp = result.joint_positions[frame]
     ax.scatter(jp[:, 0], jp[:, 1], jp[:, 2], s=30, color="k", marker="x")
     if result.skeleton is not None:

@@ -1,6 +1,7 @@
 """Readable segment names from marker labels (jaxskel.segment._names): the rule, uniqueness, and
 that a fit names its segments by it without its labels changing the skeleton."""
 
+import dataclasses
 import re
 import warnings
 
@@ -125,3 +126,23 @@ def test_plots_label_segments_by_name(body_fit, tmp_path):
         assert boxes[names[c]][1] == boxes[names[p]][1] - 1
     jaxskel.plots.plot_summary(result, tmp_path / "summary.png")
     assert (tmp_path / "summary.png").stat().st_size > 10_000
+
+
+def test_the_3d_plot_draws_a_segment_with_markers_missing_in_its_frame(body_fit):
+    """A four-marker segment with two markers missing in the drawn frame: matplotlib read
+    the segment's one RGBA colour as four colours for the two points left and raised
+    (numediart's 03_rolling stopped `jaxskel fit --plot` with a traceback); its two seen
+    markers are drawn, in the segment's colour."""
+    import matplotlib.pyplot as plt
+
+    _, _, result = body_fit
+    seg = result.segmentation.marker_segment
+    s = int(np.flatnonzero(np.bincount(seg) == 4)[0])
+    frame = 10
+    x = np.array(result.trial.positions)
+    x[frame, np.flatnonzero(seg == s)[:2]] = np.nan
+    broken = dataclasses.replace(result, trial=result.trial.replace(positions=x))
+    ax = jaxskel.plots.plot_skeleton_3d(broken, frame=frame)
+    (points,) = [c for c in ax.collections if c.get_label() == result.segment_names[s]]
+    assert len(points.get_offsets()) == 2
+    np.testing.assert_allclose(points.get_facecolor()[0][:3], plt.get_cmap("tab20")(s % 20)[:3], atol=1e-6)
