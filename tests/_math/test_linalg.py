@@ -72,6 +72,40 @@ def test_jacobi_eigenvalues_match_numpy():
     np.testing.assert_allclose(jax.vmap(eigvalsh)(jnp.asarray(batch)), np.linalg.eigvalsh(batch), atol=1e-10)
 
 
+def test_round_robin_rounds_are_disjoint_and_cover_every_pair_once():
+    """The Jacobi sweep's schedule: a round's rotations must touch disjoint rows (so that
+    applying them together equals applying them in turn), and a sweep must visit every pair."""
+    from jaxskel._math.linalg import _round_robin
+
+    for n in (2, 3, 8, 9, 64):
+        rounds = _round_robin(n)
+        size = n + n % 2
+        assert rounds.shape == (size - 1, size // 2, 2)
+        for pairs in rounds:
+            assert sorted(pairs.ravel().tolist()) == list(range(size))
+        seen = {tuple(sorted(p)) for p in rounds.reshape(-1, 2).tolist()}
+        assert len(seen) == rounds.shape[0] * rounds.shape[1] == size * (size - 1) // 2
+
+
+def test_jacobi_on_a_large_graded_matrix():
+    """A group of 60-odd markers gives the identifiability test matrices of that size, with
+    eigenvalues over many decades (a joint's directions from undetermined to well fixed)."""
+    from jaxskel._math.linalg import eigh, generalised_eigvalsh
+
+    rng = np.random.default_rng(4)
+    for n in (63, 64):
+        q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        d = np.logspace(-6, 6, n) * rng.choice([-1.0, 1.0], n)
+        a = (q * d) @ q.T
+        w, v = (np.asarray(t) for t in eigh(jnp.asarray(a)))
+        np.testing.assert_allclose(w, np.sort(d), rtol=1e-9, atol=100 * np.finfo(float).eps * np.abs(d).max())
+        np.testing.assert_allclose(v.T @ v, np.eye(n), atol=1e-10)
+        b = _spd(rng, n, 1e4)
+        expected = np.sort(np.linalg.eigvals(np.linalg.solve(b, a)).real)
+        np.testing.assert_allclose(generalised_eigvalsh(jnp.asarray(a), jnp.asarray(b)), expected,
+                                   rtol=1e-7, atol=1e-7)
+
+
 def test_jacobi_eigenvectors_match_numpy():
     from jaxskel._math.linalg import eigh
 
