@@ -815,7 +815,11 @@ def normalize_arrays(
             f"rotations must be (F, S, 4) = ({x.shape[0]}, {n_joints + 1}, 4) quaternions, got {q.shape}"
         )
     if n_joints < 3:
-        raise InputError(f"the body planes need at least 3 joints; this skeleton has {n_joints}")
+        raise InputError(
+            f"the body planes need at least 3 joints; this skeleton has {n_joints}. Sar Dessai et al.'s "
+            "normalisation needs a body (a trunk with limbs): fit a recording in which more segments move, or "
+            "leave the parameterisation out"
+        )
     if x.shape[0] < 1:
         raise InputError("the motion has no frames")
     for name, arr in (("joint_positions", x), ("rotations", q)):
