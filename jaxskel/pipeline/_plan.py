@@ -156,8 +156,9 @@ class StagePlan:
 
     ``segment_names`` names the segments (display only; default: from their markers'
     labels). ``on_stage(name)`` is called as each stage ends (a progress bar);
-    ``on_more(names)`` when the plan will run stages beyond :attr:`stages` (a grown segment
-    count: ``split``, then the joint and skeleton stages again), before they run.
+    ``on_more(names)`` when the plan will run stages beyond :attr:`stages`, before they run:
+    a grown segment count (``split``, then :attr:`refit_stages`), the label merges checked
+    against the skeleton (``confirm merges``) and the fit again after a corrected merge.
     ``device_lock`` is held around the preparation's stages that run JAX code (label
     merging, segmentation), so that other threads may run the numpy-only ones
     (:func:`jaxskel.fit_batch`).
@@ -180,6 +181,11 @@ class StagePlan:
         if o.skeleton.enabled:
             names += ["rigid", "ik"] if o.motion.enabled else ["rigid"]
         return tuple(names)
+
+    def _more(self, *names: str) -> None:
+        """Announce stages beyond :attr:`stages` that are about to run (``on_more``)."""
+        if self.on_more is not None:
+            self.on_more(names)
 
     @contextlib.contextmanager
     def stage(self, prep: PreparedFit, name: str) -> Iterator[None]:
@@ -332,8 +338,7 @@ class StagePlan:
             n += 1
             if not crowded or n > min(base.max_segments, result.trial.n_markers):
                 break
-            if self.on_more is not None:
-                self.on_more(("split", *self.refit_stages))
+            self._more("split", *self.refit_stages)
             with self.stage(prep, "split"):
                 grown = self._segment(result.trial, n)
             grown = dataclasses.replace(
@@ -457,6 +462,7 @@ class StagePlan:
 
     def _confirm_merges(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:
         """Check the label merges against the fitted skeleton; fit again if it corrected any."""
+        self._more("confirm merges")
         with self.stage(prep, "confirm merges"):
             merged, mapping = confirm_merges(prep.merge_input, prep.label_mapping, result)
         info = mapping.diagnostics["skeleton"]
@@ -467,6 +473,7 @@ class StagePlan:
             k: v for k, v in prep.cleaning.dropped.items() if k not in prep.label_mapping.physical_labels
         }) if prep.cleaning is not None else None  # fmt: skip
         work, report = self._clean_merged(merged, report)
+        self._more("segment", *self.refit_stages, "ik")  # the motion is on: this runs only after it
         with self.stage(prep, "segment"):
             work, left_out, landmarks = self._leave_out(work)
             segmentation = dataclasses.replace(self._segment(work), left_out=left_out,

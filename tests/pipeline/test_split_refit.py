@@ -216,6 +216,18 @@ def test_a_fit_reports_the_stages_its_plan_lists_and_a_refit_those_a_grown_count
     reported = []
     StagePlan(FitOptions(), on_stage=reported.append).refit(_prep(trial))
     assert tuple(reported) == StagePlan.refit_stages
+    # a passive recording: the label merges are checked against the skeleton, a stage the
+    # plan announces before it runs (a bar ran past its total there too)
+    passive, _ = synth.simulate(synth.linkage(), duration=15.0, seed=2, noise=0.001, gaps=2, relabel=True)
+    reported, announced = [], []
+    plan = StagePlan(FitOptions.from_settings(merge_labels=True), on_stage=reported.append,
+                     on_more=announced.append)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plan.fit(passive)
+    assert "confirm merges" in reported and ("confirm merges",) in announced
+    assert len(reported) == len(plan.stages) + sum(len(names) for names in announced)
+    assert sorted(reported) == sorted([*plan.stages, *(name for names in announced for name in names)])
 
 
 def test_a_count_not_kept_does_not_end_the_search(trial):
