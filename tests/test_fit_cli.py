@@ -51,6 +51,19 @@ def test_spectrum_plot_marks_the_count(fitted):
     assert "eigengap: 3" in [t.get_text() for t in ax.get_legend().get_texts()]
 
 
+def test_a_count_grown_to_the_most_rigid_is_said_in_the_summary_and_the_plot(fitted):
+    """The summary and the spectrum plot say how a ``"most rigid"`` count was reached and name
+    the rigid count passed over (the rule itself: tests/segment/test_grow_count.py)."""
+    seg = dataclasses.replace(fitted.segmentation, count_rule="most rigid", eigengap_segments=2, rigid_count=5)
+    grown = dataclasses.replace(fitted, segmentation=seg)
+    assert (
+        "segment count: grown from the eigengap's 2 to the count whose least rigid group is the most rigid, short "
+        "of the first count with every group rigid (5), which leaves a marker alone"
+    ) in grown.summary()
+    ax = jaxskel.plots.plot_spectrum(grown)
+    assert "used: 3 (grown to the most rigid)" in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
 def test_result_file_schema_roundtrip(fitted, tmp_path):
     path = tmp_path / "out.h5"
     fitted.save(path)

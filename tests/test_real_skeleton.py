@@ -133,6 +133,26 @@ def test_flat_spectrum_grows_to_the_rigid_count_with_the_knee_marker_paired():
     assert all(len(g) >= 2 for g in seg.groups)
 
 
+def test_short_take_whose_rigid_count_leaves_a_marker_alone_grows_to_the_most_rigid_count():
+    """The first half of CMU 01_01 (11 s of walking): the eigengap's 5 groups hold the trunk,
+    pelvis and both legs as one (whole legs against the pelvis: 8 misplaced markers in the
+    default fit before, ``bench/real_trees.py --halves``). The first rigid count, 14, leaves a
+    marker alone; 13, the most rigid count before it, leaves none and is taken: thigh,
+    shank and foot of each leg apart, no marker with a part it is not on."""
+    trial = jaxskel.load(DATA / "c3d_to_xyz_cmu" / "01_01.c3d")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trial, _ = jaxskel.clean.clean(trial.select_frames(slice(0, trial.n_frames // 2)))
+    seg = jaxskel.segment.segment_markers(trial)
+    assert (seg.eigengap_segments, seg.count_rule, seg.n_segments, seg.rigid_count) == (5, "most rigid", 13, 14)
+    assert misplaced_markers(trial.labels, seg.marker_segment, seg.distance_std, seg.rigid_limit) == []
+    assert all(len(g) >= 2 for g in seg.groups)
+    parts = segment_parts(trial.labels, seg.marker_segment)
+    for side in "LR":
+        legs = [parts.index(f"{side} {part}") for part in ("thigh", "shank", "foot")]
+        assert len(set(legs)) == 3, parts
+
+
 @pytest.mark.extended  # about a minute on 2 cores; the segmentation above runs by default
 def test_numediart_85_12_tree_is_anatomical_with_default_settings():
     """numediart 85_12 (CMU set, 37 s), the whole default fit on the 13 rigid segments: every

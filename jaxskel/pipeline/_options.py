@@ -208,7 +208,7 @@ class SegmentOptions(_Group):
     """Grouping markers into rigid segments (:func:`jaxskel.segment.segment_markers`)."""
 
     n_segments: int | None = setting(None, AnyOf((None, Interval(1, integer=True))),
-                                     "number of segments (None: the eigengap's, grown until every group is rigid)",
+                                     "number of segments (None: the eigengap's, grown toward rigid groups)",
                                      flat="n_segments", flag="--segments", advanced=False)
     n_samplings: int = setting(8, Interval(1, integer=True), "jittered frame samplings clustered",
                                flat="n_samplings")
@@ -305,7 +305,8 @@ class FitOptions:
 
     n_segments
         Number of rigid segments, or ``None`` for an automatic count: the eigengap's,
-        grown until every group is rigid (:func:`jaxskel.segment.segment_markers`), and grown
+        grown until every group is rigid, or to the most rigid count before one that
+        leaves a marker alone (:func:`jaxskel.segment.segment_markers`), and grown
         again by one, with the fit rerun, while a segment holds two or more markers the
         rigid skeleton cannot hold (:mod:`jaxskel.pipeline._split_refit`; kept only if fewer
         markers are flagged). A given count is never changed.

@@ -80,7 +80,8 @@ def plot_spectrum(result: Any, ax: Any = None) -> Any:
                     color="C1" if rank == 0 else "0.4")
     ax.axvline(seg.eigengap_segments + 0.5, color="C1", lw=1, label=f"eigengap: {seg.eigengap_segments}")
     if seg.n_segments != seg.eigengap_segments:
-        how = {"rigid": "grown until rigid", "split": "grown after the rigid fit"}.get(seg.count_rule, seg.count_rule)
+        how = {"rigid": "grown until rigid", "most rigid": "grown to the most rigid",
+               "split": "grown after the rigid fit"}.get(seg.count_rule, seg.count_rule)
         ax.axvline(seg.n_segments + 0.5, color="C2", lw=1, ls="--", label=f"used: {seg.n_segments} ({how})")
     ax.set_xlabel("k")
     ax.set_ylabel("eigenvalue of the normalised affinity")

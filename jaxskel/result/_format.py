@@ -15,7 +15,7 @@ Schema version 1 (documented in the README, "Result file"):
   ``left_out_labels``, ``left_out_reasons`` (markers the motion cannot place, left out of the
   skeleton, and why: :func:`jaxskel.segment.left_out_markers`); ``still_spans`` (n, 2) the
   frame ranges of still trials, which the joint stages leave out;
-  attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / split), ``max_segments``,
+  attributes ``eigengap_segments``, ``count_rule`` (given / eigengap / rigid / most rigid / split), ``max_segments``,
   ``rigid_limit`` (metres), ``sigma``, ``white_noise`` (metres), ``split_from`` (the automatic count before it grew, 0 if it did not),
   ``rigid_count`` (the first larger count with every group rigid, passed over for a lone marker; 0 if none);
 * ``/topology``: ``joint_cost`` (S, S) the MST weight (inf = infeasible; attribute

@@ -29,6 +29,9 @@ def summary_text(result: Any) -> str:
         "eigengap": "eigengap",
         "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
         f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
+        "most rigid": f"grown from the eigengap's {seg.eigengap_segments} to the count whose least rigid group is "
+        f"the most rigid, short of the first count with every group rigid ({seg.rigid_count}), which leaves a marker "
+        "alone",
         "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
         f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
     }[seg.count_rule]

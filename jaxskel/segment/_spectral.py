@@ -46,9 +46,14 @@ Following the paper:
   group, which the grown count separates. A knee marker can then go to either side and
   leave its neighbour's only other marker alone: a lone marker first takes the marker on
   the joint next to it, one about as rigid with it as with its own group
-  (:func:`_pair_lone_markers`). The eigengap's count is kept when no count up to
-  ``max_segments`` is rigid (a marker that moves against every neighbour), or when the
-  first rigid one still leaves more single-marker groups.
+  (:func:`_pair_lone_markers`). When no count up to ``max_segments`` is rigid (a marker
+  that moves against every neighbour), or the first rigid one still leaves more
+  single-marker groups than the eigengap's, that count is passed over; the count taken is
+  then, of those on the way that leave no more lone markers, the one whose least rigid
+  group is the most rigid, or the eigengap's if none is more rigid (:func:`grow_count`).
+  A short take in which some joints barely move gives such a spectrum: its eigengap
+  joins whole limbs, and the first rigid count splits a lone marker off a segment of
+  two.
 
 The measurements behind these departures (noise levels, counts on real recordings) are in
 docs/bench/evidence_from_docstrings.md.
@@ -62,7 +67,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -227,7 +232,9 @@ class Segmentation:
     count_rule
         How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper),
         ``"rigid"`` (grown from the eigengap's count until every group is rigid; 1 when
-        every pair of markers is rigid, a recording that exercises no joint), or
+        every pair of markers is rigid, a recording that exercises no joint), ``"most
+        rigid"`` (grown short of ``rigid_count``, to the count whose least rigid group is
+        the most rigid: :func:`grow_count`), or
         ``"split"`` (grown past ``split_from`` after the rigid skeleton could not hold
         ``split_markers`` on their segments: :func:`jaxskel.fit_skeleton`).
     max_segments
@@ -243,9 +250,9 @@ class Segmentation:
         With ``count_rule == "split"``: the markers the rigid skeleton flagged, two or
         more on one segment, that made the count grow.
     rigid_count
-        With ``count_rule == "eigengap"``: the first larger count whose groups were all
-        rigid, passed over because it leaves more markers alone in a group (a count to
-        compare when :meth:`nonrigid_groups` is not empty); 0 when there is none.
+        With ``count_rule`` ``"eigengap"`` or ``"most rigid"``: the first larger count whose
+        groups were all rigid, passed over because it leaves more markers alone in a group
+        (a count to compare when :meth:`nonrigid_groups` is not empty); 0 when there is none.
     white_noise
         Std-dev per coordinate (metres) of the recording's white measurement noise
         (:func:`white_noise`), taken out of A before clustering.
@@ -382,6 +389,56 @@ def _least_rigidity(labels: np.ndarray, a: np.ndarray) -> float:
 
 def count_singletons(labels: np.ndarray) -> int:
     return int(np.sum(np.bincount(labels) == 1))
+
+
+Clustering = tuple[np.ndarray, list[float], int]
+
+
+def grow_count(
+    gap_choice: int,
+    cluster: Callable[[int], Clustering],
+    a: np.ndarray,
+    limit: float,
+    n_max: int,
+) -> tuple[str, np.ndarray, list[float], int, int]:
+    """The automatic count, grown from the eigengap's until every group is rigid.
+
+    ``cluster(n)`` gives n groups (labels, every sampling's score, the best sampling);
+    ``a`` the distance stds the groups are judged on, ``limit`` the largest one a rigid
+    group may hold. The eigengap's count is kept when its groups are rigid. Otherwise
+    the count grows, one at a time up to ``n_max``, to the first whose groups are all
+    rigid (``"rigid"``), its lone markers first paired with the marker on the joint next
+    to them (:func:`_pair_lone_markers`). A new single-marker group has no partner for a
+    joint among its neighbours when they carry few markers (a joint needs 4 in all): it
+    is then jointed anywhere. So when that count still leaves more lone markers than the
+    eigengap's, it is passed over (returned as ``rigid_count``), and so it is when no
+    count up to ``n_max`` is rigid. The count taken instead is, of the counts on the way
+    that leave no more lone markers than the eigengap's, the one whose least rigid group
+    is the most rigid (``"most rigid"``; the smaller count on a tie), if it is more rigid
+    than the eigengap's; else the eigengap's (``"eigengap"``). (Examples, and the rules
+    tried and not adopted: docs/bench/evidence_from_docstrings.md.)
+
+    Returns ``(rule, labels, scores, best, rigid_count)``.
+    """
+    labels, scores, best = cluster(gap_choice)
+    least = _least_rigidity(labels, a)
+    if least <= limit:
+        return "eigengap", labels, scores, best, 0
+    lone = count_singletons(labels)
+    rule, chosen, rigid_count = "eigengap", (labels, scores, best), 0
+    for n in range(gap_choice + 1, n_max + 1):
+        grown = cluster(n)
+        grown_least = _least_rigidity(grown[0], a)
+        if grown_least <= limit:
+            paired = _pair_lone_markers(grown[0], a, limit)
+            if count_singletons(paired) <= lone:
+                return "rigid", _canonical(paired), grown[1], grown[2], 0
+            rigid_count = n
+            break
+        if grown_least < least and count_singletons(grown[0]) <= lone:
+            rule, chosen, least = "most rigid", grown, grown_least
+    return rule, *chosen, rigid_count
+
 
 
 def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
@@ -570,10 +627,11 @@ def segment_markers(
         Upper bound for the eigengap search and the rigidity growth.
     rigid_ratio
         With ``n_segments=None``: the count grows from the eigengap's choice until no
-        group holds two markers with ``A_ij > rigid_ratio * sigma`` (kept at the
-        eigengap's choice when no count up to ``max_segments`` achieves that, or when
-        the first that does leaves more single-marker groups once each lone marker has
-        taken the marker on the joint next to it, if any). When every pair of
+        group holds two markers with ``A_ij > rigid_ratio * sigma``. When no count up to
+        ``max_segments`` achieves that, or the first that does leaves more single-marker
+        groups once each lone marker has taken the marker on the joint next to it, the
+        count is the most rigid one on the way that adds no lone marker, or the
+        eigengap's (:func:`grow_count`). When every pair of
         markers is within that limit the count is 1 (one rigid body: the motion
         exercises no joint, and :func:`jaxskel.fit_skeleton` says so).
         ``None``: the eigengap alone (the paper).
@@ -674,25 +732,9 @@ def segment_markers(
         # feasible joint between them).
         rule, labels, scores, best = "rigid", one_group, [_score(one_group, a_observed)], 0
     else:
-        rule, (labels, scores, best) = "eigengap", cluster(gap_choice)
-        if _least_rigidity(labels, a_observed) > limit:
-            for n in range(gap_choice + 1, min(max_segments, m) + 1):
-                grown = cluster(n)
-                if _least_rigidity(grown[0], a_observed) <= limit:
-                    # A new single-marker group has no partner for a joint among its
-                    # neighbours when they carry few markers (a joint needs 4 in all):
-                    # it is then jointed anywhere. A lone marker first takes the marker on
-                    # the joint next to it (_pair_lone_markers); if lone markers are still
-                    # added, keep the eigengap's count, and report this one. (An example,
-                    # and accepting a lone marker whose most rigid partner's group is large
-                    # enough for a joint, tried and not adopted:
-                    # docs/bench/evidence_from_docstrings.md.)
-                    paired = _pair_lone_markers(grown[0], a_observed, limit)
-                    if count_singletons(paired) <= count_singletons(labels):
-                        rule, labels, scores, best = "rigid", _canonical(paired), grown[1], grown[2]
-                    else:
-                        rigid_count = n
-                    break
+        rule, labels, scores, best, rigid_count = grow_count(
+            gap_choice, cluster, a_observed, limit, min(max_segments, m)
+        )
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
     )
