@@ -411,11 +411,11 @@ def grow_count(
     to them (:func:`_pair_lone_markers`). A new single-marker group has no partner for a
     joint among its neighbours when they carry few markers (a joint needs 4 in all): it
     is then jointed anywhere. So when that count still leaves more lone markers than the
-    eigengap's, it is passed over (returned as ``rigid_count``), and so it is when no
-    count up to ``n_max`` is rigid. The count taken instead is, of the counts on the way
-    that leave no more lone markers than the eigengap's, the one whose least rigid group
-    is the most rigid (``"most rigid"``; the smaller count on a tie), if it is more rigid
-    than the eigengap's; else the eigengap's (``"eigengap"``). (Examples, and the rules
+    eigengap's, it is passed over (returned as ``rigid_count``; 0 when no count up to
+    ``n_max`` is rigid). The count taken then is, of the counts on the way that leave no
+    more lone markers than the eigengap's, the one whose least rigid group is the most
+    rigid (``"most rigid"``; the smaller count on a tie), if it is more rigid than the
+    eigengap's; else the eigengap's (``"eigengap"``). (Examples, and the rules
     tried and not adopted: docs/bench/evidence_from_docstrings.md.)
 
     Returns ``(rule, labels, scores, best, rigid_count)``.
