@@ -440,7 +440,6 @@ def grow_count(
     return rule, *chosen, rigid_count
 
 
-
 def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
     """Give a one-marker group the marker on the joint next to it, where there is one.
 
