@@ -40,6 +40,11 @@ from jaxskel import synth
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers import partition  # noqa: E402
 
+#: The warnings that speak about a fit's result (jaxskel's own classes); a process-wide one such as
+#: the memory-mapping guard's ``RuntimeWarning`` (:mod:`jaxskel._runtime.map_limit`) does not make a wrong
+#: fit any less silent.
+FIT_WARNINGS = {name for name in jaxskel.__all__ if name.endswith("Warning")}
+
 
 def _bodies(quick: bool, first_seed: int = 0) -> list[tuple[str, int, int]]:
     """The bodies of the table: seeds ``first_seed`` .. +3 of each tree size, +2 of each
@@ -112,8 +117,9 @@ def main() -> None:
         print(f"{kind:>12} {size:>4} {seed:>4} {row['segments']:>4}/{row['true_segments']:<4} "
               f"{row['seg']!s:>5} {row['tree']!s:>5}  {note}", flush=True)
     wrong = [r for r in rows if not (r["seg"] and r["tree"])]
-    silent = [r for r in wrong if not r["warnings"]]
-    print(f"{len(rows) - len(wrong)} of {len(rows)} exact; {len(wrong)} wrong, {len(silent)} of them without a warning")
+    silent = [r for r in wrong if not set(r["warnings"]) & FIT_WARNINGS]
+    print(f"{len(rows) - len(wrong)} of {len(rows)} exact; {len(wrong)} wrong, {len(silent)} of them without a warning "
+          "about the fit")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
