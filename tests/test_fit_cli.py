@@ -62,6 +62,14 @@ def test_a_count_grown_to_the_most_rigid_is_said_in_the_summary_and_the_plot(fit
     ) in grown.summary()
     ax = jaxskel.plots.plot_spectrum(grown)
     assert "used: 3 (grown to the most rigid)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    # no rigid count up to max_segments (rigid_count 0): the summary says so, and names no count
+    seg = dataclasses.replace(seg, rigid_count=0, max_segments=7)
+    text = dataclasses.replace(fitted, segmentation=seg).summary()
+    assert (
+        "segment count: grown from the eigengap's 2 to the count whose least rigid group is the most rigid, as no "
+        "count up to 7 has every group rigid"
+    ) in text
+    assert "(0)" not in text
 
 
 def test_result_file_schema_roundtrip(fitted, tmp_path):

@@ -30,8 +30,9 @@ def summary_text(result: Any) -> str:
         "rigid": f"grown from the eigengap's {seg.eigengap_segments} until every group is rigid "
         f"(A_ij <= {1e3 * seg.rigid_limit:.1f} mm)",
         "most rigid": f"grown from the eigengap's {seg.eigengap_segments} to the count whose least rigid group is "
-        f"the most rigid, short of the first count with every group rigid ({seg.rigid_count}), which leaves a marker "
-        "alone",
+        "the most rigid, "
+        + (f"short of the first count with every group rigid ({seg.rigid_count}), which leaves a marker alone"
+           if seg.rigid_count else f"as no count up to {seg.max_segments} has every group rigid"),
         "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
         f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
     }[seg.count_rule]

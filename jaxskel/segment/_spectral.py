@@ -233,8 +233,9 @@ class Segmentation:
         How ``n_segments`` was decided: ``"given"``, ``"eigengap"`` (the paper),
         ``"rigid"`` (grown from the eigengap's count until every group is rigid; 1 when
         every pair of markers is rigid, a recording that exercises no joint), ``"most
-        rigid"`` (grown short of ``rigid_count``, to the count whose least rigid group is
-        the most rigid: :func:`grow_count`), or
+        rigid"`` (grown short of ``rigid_count``, or with no rigid count up to
+        ``max_segments``, to the count whose least rigid group is the most rigid:
+        :func:`grow_count`), or
         ``"split"`` (grown past ``split_from`` after the rigid skeleton could not hold
         ``split_markers`` on their segments: :func:`jaxskel.fit_skeleton`).
     max_segments
