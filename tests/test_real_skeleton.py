@@ -484,3 +484,29 @@ def test_a_take_the_rigid_skeleton_cannot_hold_keeps_its_joints_and_says_why(tmp
         code = main(["fit", str(source), "-o", str(out), "--bvh", str(bvh), "--quiet"])
     assert code == 2 and "--bvh could not be written" in capsys.readouterr().err
     assert out.is_file() and not bvh.exists()
+
+
+@pytest.mark.extended  # about 40 s on 2 cores; the scatter's split is tested on synthetic trees by default
+def test_a_trunk_clustered_with_the_pelvis_is_split_by_its_scatter():
+    """The second half of pyCGM's Movement_trial (1.6 s of walking, Plug-in-Gait): the
+    automatic count (11) holds the thorax markers, the pelvis markers and RSHO in one group,
+    whose distances vary under the rigidity limit over so short a take. Posed as one rigid
+    body, that group's markers scatter by several times the median, so the count grows: the
+    pelvis alone, the thorax with its shoulder and back markers, and the tree's pelvis-thorax
+    and thorax-head joints (before: pelvis-head, and both arms on the pelvis)."""
+    trial = jaxskel.load(DATA / "pycgm" / "Movement_trial.c3d")
+    trial = trial.select_frames(slice(trial.n_frames // 2, trial.n_frames))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = jaxskel.fit_skeleton(trial, ik=False)
+    seg = result.segmentation
+    assert (seg.count_rule, seg.split_from) == ("split", 11) and result.n_segments > 11
+    labels = [lab.split(":")[-1] for lab in result.trial.labels]
+    group = {lab: int(s) for lab, s in zip(labels, seg.marker_segment)}
+    pelvis = {lab for lab in labels if group[lab] == group["LASI"]}
+    assert pelvis == {"LASI", "RASI", "LPSI", "RPSI"} | {lab for lab in pelvis if lab.startswith("*")}
+    assert {group[lab] for lab in ("T10", "CLAV", "STRN", "LSHO", "RSHO")} == {group["T10"]} != {group["LASI"]}
+    parts = segment_parts(result.trial.labels, seg.marker_segment)
+    joints = {frozenset((parts[a], parts[b])) for a, b in np.asarray(result.edges).tolist()}
+    assert {frozenset(("pelvis", "thorax")), frozenset(("thorax", "head"))} <= joints
+    assert frozenset(("pelvis", "head")) not in joints

@@ -39,7 +39,7 @@ from ..segment import Segmentation, combine_trials, left_out_markers, segment_ma
 from ..segment import segment_names as default_names
 from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, measured_rms, solver_shape
 from ._options import FitOptions
-from ._split_refit import MAX_SPLITS, crowded_nonrigid, keep_split, replay
+from ._split_refit import MAX_SPLITS, crowded_nonrigid, crowded_scatter, keep_split, replay, scatter_splits
 from ._warnings import (
     STACKLEVEL,
     require_one_tree,
@@ -314,9 +314,9 @@ class StagePlan:
         return self.complete(prep, stacklevel=stacklevel + 1)
 
     def grow_count(self, prep: PreparedFit, topology: Topology | None = None, *, stacklevel: int = 2) -> SkeletonResult:
-        """Fit a prepared fit, growing its automatic count while a segment holds two or more
-        markers the rigid skeleton cannot hold (:mod:`jaxskel.pipeline._split_refit`), then add
-        the motion.
+        """Fit a prepared fit, growing its automatic count while a group of three or more
+        markers holds two or more that its Procrustes scatter or the rigid skeleton flags
+        (:mod:`jaxskel.pipeline._split_refit`), then add the motion.
 
         The first fit is the plan's skeleton on ``topology`` (its joint stage solved already,
         by :func:`jaxskel.fit_batch`) or on the plan's own joint stage; each grown count is
@@ -332,19 +332,25 @@ class StagePlan:
         n = base.n_segments
         for _ in range(MAX_SPLITS if growable else 0):
             # Each count is tried even when the one before was not kept: one more segment
-            # can cut a joined group where it is not the pair the rigid fit flagged, and
-            # the next count then cuts the flagged pair too.
+            # can cut a joined group where it is not the pair the flags name, and the next
+            # count then cuts the flagged pair too.
+            scattered = crowded_scatter(result.trial, result.segmentation)
             crowded = crowded_nonrigid(result.skeleton)
             n += 1
-            if not crowded or n > min(base.max_segments, result.trial.n_markers):
+            if not (scattered or crowded) or n > min(base.max_segments, result.trial.n_markers):
                 break
-            self._more("split", *self.refit_stages)
+            self._more("split")
             with self.stage(prep, "split"):
                 grown = self._segment(result.trial, n)
+            by_scatter = bool(scattered) and scatter_splits(result.trial, result.segmentation, grown, base)
+            if not by_scatter and not crowded:
+                continue  # only the scatter flags, and this count does not mend them: nothing to fit
+            self._more(*self.refit_stages)  # a progress bar's total grows by the refit's stages
+            flagged = tuple(lab for lab in result.trial.labels if lab in set(scattered) | set(crowded))
             grown = dataclasses.replace(
                 grown, count_rule="split", eigengap_segments=base.eigengap_segments, rigid_limit=base.rigid_limit,
                 split_from=base.split_from or base.n_segments,
-                split_markers=result.segmentation.split_markers + crowded,
+                split_markers=result.segmentation.split_markers + flagged,
                 left_out=base.left_out, still_spans=base.still_spans,
             )
             with warnings.catch_warnings(record=True) as caught:
@@ -352,7 +358,8 @@ class StagePlan:
                     candidate = self.refit(dataclasses.replace(prep, trial=result.trial, segmentation=grown))
                 except DegenerateMotionError:  # e.g. a split-off marker no joint can attach: not a candidate
                     continue
-            if keep_split(result, candidate, base, grown):
+            keep = candidate.skeleton is not None if by_scatter else keep_split(result, candidate, base, grown)
+            if keep:
                 result, kept_warnings = candidate, list(caught)
         replay(kept_warnings, stacklevel)
         return self.motion(prep, result)

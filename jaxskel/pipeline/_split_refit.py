@@ -13,18 +13,34 @@ A single flagged marker on a segment is what soft tissue and markers on joints l
 like on real data, so the count grows only where a segment holds **two or more**
 flagged markers (the cases on synthetic trees and real recordings:
 docs/bench/evidence_from_docstrings.md) among three or more: a group of two can only come
-apart into lone markers, which step 2 never keeps, so its two flagged markers (a thigh
+apart into lone markers, which a kept split never adds, so its two flagged markers (a thigh
 left with a marker on the knee and one other, both held loosely) would only make the
-segmentation start again elsewhere:
+segmentation start again elsewhere.
+
+Two readings flag markers, and either can start a split:
+
+* **the groups' scatter** (:func:`jaxskel.segment.marker_scatter`): each group posed on its
+  own by Procrustes, from the segmentation alone. A joined group bends no other segment,
+  so the median stays at the noise and a hinge that turns nearly about the child's own
+  axis (distances varying by 2-5 mm) still stands out. It is the cheaper reading to
+  judge by: a grown segmentation is read the same way before anything is fitted to it.
+* **the rigid skeleton's residuals** (:attr:`jaxskel.skeleton.Skeleton.nonrigid_markers`),
+  which also see a group that the scatter reads as rigid but no joint can hold.
+
+Then:
 
 1. segment again from scratch with one segment more (the paper's samplings and
-   scoring, :func:`jaxskel.segment.segment_markers` given ``n``), and fit the joints and the
-   rigid skeleton again;
-2. keep the new fit only if its rigid skeleton flags fewer markers *and* it leaves no
-   more single-marker segments (a marker peeled off alone is always "rigid", and its
-   joint is often untestable);
-3. while the kept fit still has a segment with two or more flagged markers, try the
-   next count (one more than the last one *tried*, kept or not), at most
+   scoring, :func:`jaxskel.segment.segment_markers` given ``n``);
+2. if the groups' scatter started it and the new segmentation's scatter flags fewer
+   markers and leaves no more single-marker segments (a marker peeled off alone is always
+   "rigid", and its joint is often untestable): fit the joints and the rigid skeleton
+   again and keep that fit if it has a skeleton. Otherwise, if the rigid skeleton's
+   residuals started it: fit again, and keep the fit if its rigid skeleton flags fewer
+   markers and it leaves no more single-marker segments. A segmentation that neither
+   reading improves is not fitted when only the scatter started it: soft tissue on real
+   recordings flags whole groups (a head, a forearm) that no count mends;
+3. while the kept fit still has a group with two or more markers flagged by either
+   reading, try the next count (one more than the last one *tried*, kept or not), at most
    :data:`MAX_SPLITS` counts in all.
 
 Warnings of the fits that are discarded are dropped; those of the kept one are
@@ -38,9 +54,9 @@ from typing import Any
 
 import numpy as np
 
-from ..segment import Segmentation, count_singletons
+from ..segment import Segmentation, count_singletons, crowded_flags, marker_scatter, scatter_flags
 
-__all__ = ["MAX_SPLITS", "crowded_nonrigid", "keep_split", "replay"]
+__all__ = ["MAX_SPLITS", "crowded_nonrigid", "crowded_scatter", "keep_split", "replay", "scatter_splits"]
 
 #: Most segments added after the rigid fit (each one a further segmentation and fit).
 MAX_SPLITS = 2
@@ -74,3 +90,22 @@ def keep_split(kept: Any, candidate: Any, base: Segmentation, grown: Segmentatio
         return False
     fewer = len(candidate.skeleton.nonrigid_markers) < len(kept.skeleton.nonrigid_markers)
     return fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment)
+
+
+def crowded_scatter(trial: Any, segmentation: Segmentation) -> tuple[str, ...]:
+    """The markers that the groups' scatter flags (:func:`jaxskel.segment.scatter_flags`)
+    and that share a group of three or more with another flagged marker, in label order."""
+    flags = scatter_flags(marker_scatter(trial.positions, segmentation.marker_segment))
+    return tuple(trial.labels[i] for i in crowded_flags(segmentation.marker_segment, flags))
+
+
+def scatter_splits(trial: Any, kept: Segmentation, grown: Segmentation, base: Segmentation) -> bool:
+    """Whether a segmentation with one segment more mends what the groups' scatter flags:
+    it flags fewer markers than the kept one and leaves no more single-marker segments
+    than the automatic count. Read from the segmentations alone, before any fit."""
+    def flagged(seg: Segmentation) -> int:
+        return int(scatter_flags(marker_scatter(trial.positions, seg.marker_segment)).sum())
+
+    if count_singletons(grown.marker_segment) > count_singletons(base.marker_segment):
+        return False
+    return flagged(grown) < flagged(kept)

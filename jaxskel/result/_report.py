@@ -33,8 +33,9 @@ def summary_text(result: Any) -> str:
         "the most rigid, "
         + (f"short of the first count with every group rigid ({seg.rigid_count}), which leaves a marker alone"
            if seg.rigid_count else f"as no count up to {seg.max_segments} has every group rigid"),
-        "split": f"grown from {seg.split_from} (automatic) because the rigid skeleton could not hold "
-        f"{', '.join(seg.split_markers)} (two or more on one segment); compare n_segments={seg.split_from}",
+        "split": f"grown from {seg.split_from} (automatic) because one rigid body could not hold "
+        f"{', '.join(seg.split_markers)} with the rest of their group (two or more in one group, by the group's "
+        f"scatter or the rigid skeleton); compare n_segments={seg.split_from}",
     }[seg.count_rule]
     lines.append(
         f"segment count: {rule}; largest eigengaps after k = {gaps}; "

@@ -236,8 +236,8 @@ class Segmentation:
         rigid"`` (grown short of ``rigid_count``, or with no rigid count up to
         ``max_segments``, to the count whose least rigid group is the most rigid:
         :func:`grow_count`), or
-        ``"split"`` (grown past ``split_from`` after the rigid skeleton could not hold
-        ``split_markers`` on their segments: :func:`jaxskel.fit_skeleton`).
+        ``"split"`` (grown past ``split_from`` because one rigid body could not hold
+        ``split_markers`` with the rest of their groups: :func:`jaxskel.fit_skeleton`).
     max_segments
         The upper bound of the eigengap search and of the growth.
     rigid_limit
@@ -248,8 +248,9 @@ class Segmentation:
         With ``count_rule == "split"``: the automatic count (eigengap or rigid) the
         fit started from; 0 otherwise.
     split_markers
-        With ``count_rule == "split"``: the markers the rigid skeleton flagged, two or
-        more on one segment, that made the count grow.
+        With ``count_rule == "split"``: the markers flagged two or more in one group, by
+        the group's Procrustes scatter (:func:`marker_scatter`) or by the rigid skeleton,
+        that made the count grow.
     rigid_count
         With ``count_rule`` ``"eigengap"`` or ``"most rigid"``: the first larger count whose
         groups were all rigid, passed over because it leaves more markers alone in a group

@@ -1,7 +1,8 @@
 """Growing the automatic segment count after the rigid fit (:meth:`jaxskel.pipeline.StagePlan.grow_count`):
 when it grows, which fit is kept, which warnings the user sees. The fits are stubs here;
-the end-to-end case (a random tree whose eigengap joins two segments) is in
-``test_fit_cli.py``."""
+the end-to-end cases (random trees whose eigengap joins two segments) are in
+``test_fit_cli.py``. The tests of the rigid skeleton's reading switch the groups' scatter
+off (``skeleton_reading_only``): their trial is a joined pair that the scatter reads too."""
 
 import dataclasses
 import warnings
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxskel import FitOptions, synth
-from jaxskel.pipeline import PreparedFit, StagePlan
+from jaxskel.pipeline import PreparedFit, StagePlan, _plan
 from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid
 from jaxskel.segment import segment_markers
 
@@ -70,6 +71,12 @@ def trial():
     return trial
 
 
+@pytest.fixture
+def skeleton_reading_only(monkeypatch):
+    """The split search as if the groups' scatter flagged nothing."""
+    monkeypatch.setattr(_plan, "crowded_scatter", lambda trial, segmentation: ())
+
+
 def _prep(trial, n_segments=None):
     seg = segment_markers(trial, n_segments)
     return PreparedFit(
@@ -94,6 +101,7 @@ def test_crowded_markers_are_the_flagged_ones_sharing_a_segment():
     assert crowded_nonrigid(None) == ()
 
 
+@pytest.mark.usefixtures("skeleton_reading_only")
 def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(trial):
     prep = _prep(trial)
     m0 = prep.segmentation.n_segments
@@ -130,6 +138,7 @@ def test_count_grows_while_a_segment_holds_two_flagged_markers_and_fewer_remain(
     assert "split" in prep.timings
 
 
+@pytest.mark.usefixtures("skeleton_reading_only")
 def test_a_split_that_does_not_remove_flags_is_discarded(trial):
     prep = _prep(trial)
     group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
@@ -198,9 +207,10 @@ def test_a_split_that_leaves_a_marker_alone_is_discarded():
     assert [g.n_segments for g in grown] == [3 + k for k in range(1, MAX_SPLITS + 1)]
     assert all(1 in np.bincount(g.marker_segment) for g in grown)
     assert out.segmentation is prep.segmentation
-    # each refit is announced (a progress bar's total grows) before its split runs; the
-    # stub refit reports no stages, the motion stub none either
-    assert reported == [("split", *StagePlan.refit_stages), "split"] * MAX_SPLITS
+    # each split is announced (a progress bar's total grows) before it runs, and its refit
+    # after it, once a refit is to run; the stub refit reports no stages, the motion stub
+    # none either
+    assert reported == [("split",), "split", StagePlan.refit_stages] * MAX_SPLITS
 
 
 def test_a_fit_reports_the_stages_its_plan_lists_and_a_refit_those_a_grown_count_announces():
@@ -251,3 +261,59 @@ def test_a_count_not_kept_does_not_end_the_search(trial):
     seg = out.segmentation
     assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 2)
     assert [str(w.message) for w in caught] == [f"refit {m0 + 2}"]
+
+
+def test_the_groups_scatter_splits_a_joined_pair_that_the_rigid_skeleton_does_not_flag(trial):
+    """The eigengap joins segments 9 and 10 of this tree; the stub skeletons flag nothing,
+    so only the groups' scatter can start the split: one more segment mends its flags, and
+    that count is fitted and kept, with the true groups."""
+    from helpers import partition
+
+    _, truth = synth.simulate(synth.random_tree(12, seed=3), duration=20.0, seed=3, noise=0.001, gaps=2)
+    prep = _prep(trial)
+    m0 = prep.segmentation.n_segments
+    calls = []
+
+    def refit(p):
+        calls.append(p.segmentation.n_segments)
+        return _result(p, p.segmentation, ())
+
+    out = _grow(prep, lambda p: _result(p, p.segmentation, ()), refit)
+    assert calls == [m0 + 1]
+    seg = out.segmentation
+    assert (seg.count_rule, seg.split_from, seg.n_segments) == ("split", m0, m0 + 1)
+    assert len(seg.split_markers) >= 2 and all(lab.startswith(("S9M", "S10M")) for lab in seg.split_markers)
+    assert partition(trial.labels, seg.marker_segment) == partition(trial.labels, truth.marker_segment)
+
+
+def test_scatter_flags_that_no_count_mends_are_not_fitted(trial, monkeypatch):
+    """Soft tissue flags a whole group that no count mends: the grown segmentations are
+    read, none is fitted. Where the rigid skeleton flags the group too, each count is
+    fitted and judged by the skeleton's flags, as without the scatter."""
+    prep = _prep(trial)
+    m0 = prep.segmentation.n_segments
+    group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
+    monkeypatch.setattr(_plan, "crowded_scatter", lambda trial, segmentation: tuple(group))
+    judged = []
+    monkeypatch.setattr(_plan, "scatter_splits", lambda *args: judged.append(args[2].n_segments) or False)
+    calls = []
+
+    def refit(p):
+        calls.append(p.segmentation.n_segments)
+        return _result(p, p.segmentation, ())
+
+    out = _grow(prep, lambda p: _result(p, p.segmentation, ()), refit, mend=False)
+    assert judged == [m0 + k for k in range(1, MAX_SPLITS + 1)] and calls == []
+    assert out.segmentation is prep.segmentation and "split" in prep.timings
+    # a progress bar counts only what runs: each split's segmentation, no refit
+    reported = []
+    plan = _Plan(FitOptions.from_settings(mend=False), first=lambda p: _result(p, p.segmentation, ()), again=refit,
+                 on_stage=reported.append, on_more=reported.append)
+    plan.grow_count(_prep(trial))
+    assert reported == [("split",), "split"] * MAX_SPLITS and calls == []
+
+    judged.clear()
+    out = _grow(_prep(trial), lambda p: _result(p, p.segmentation, group), refit, mend=False)
+    # m0 + 1: the skeleton's flags drop, kept; m0 + 2: only the (stub) scatter still flags, read and not fitted
+    assert judged == [m0 + 1, m0 + 2] and calls == [m0 + 1]
+    assert out.segmentation.n_segments == m0 + 1 and out.segmentation.split_markers == tuple(group)
