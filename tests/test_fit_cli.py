@@ -208,6 +208,31 @@ def test_a_hinge_turning_about_its_childs_own_axis_is_split_by_the_groups_scatte
     assert "grown from 3 (automatic)" in result.summary()
 
 
+def test_a_joint_between_posed_segments_gives_way_to_a_two_marker_hub():
+    """A random 8-segment tree whose two-marker segment 3 is a hub (jointed to 1, 4, 5 and
+    6). The joint costs' spanning tree joins 4 to 1 instead of 3 to 1. The fixed-centre
+    check cannot judge 1-3 (3 has no pose), and the sparse-segment check judges only
+    edges to sparse segments; the pass that judges edges between posed segments against
+    rivals with a sparse segment, by the sphere misfit about the centre of least variance,
+    sees 4's markers keep 13 mm^2 about any centre fixed in 1 and 3's keep 2 mm^2 about
+    one fixed in 1: it exchanges 1-4 for 1-3, and the tree is the true one."""
+    from helpers import segment_map
+
+    trial, truth = synth.simulate(synth.random_tree(8, seed=9), duration=20.0, seed=9, noise=0.001, gaps=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = jaxskel.fit_skeleton(trial, ik=False)
+    named = segment_map(result, trial, truth)
+    assert sorted(named.values()) == list(range(8))
+    assert {frozenset((named[int(p)], named[int(c)])) for p, c in result.edges} == {
+        frozenset(map(int, e)) for e in truth.edges}
+    (exchange,) = result.topology.pose_exchanges
+    assert exchange.test == "sphere" and exchange.misfit[1] * 2 < exchange.misfit[0]
+    assert {frozenset(named[s] for s in exchange.removed), frozenset(named[s] for s in exchange.added)} == {
+        frozenset((1, 4)), frozenset((1, 3))}
+    assert frozenset(named[s] for s in exchange.added) == frozenset((1, 3))
+
+
 @pytest.mark.extended  # 1-3 min on 2 cores; tests/pipeline/test_split_refit.py covers the split refit by default
 def test_two_segments_clustered_as_one_are_split_after_the_rigid_fit(tmp_path):
     """A random 12-segment tree whose joint 9-10 moves its markers little against each

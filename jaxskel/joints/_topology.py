@@ -693,6 +693,12 @@ def tree_problem(
         sphere, judged = _sphere_check_matrices(x, mask, seg, s, pair_costs.frames, poses, attachments)
         undirected, more = pose_checked_edges(undirected, sphere, pair_costs.cost, judged=judged, test="sphere")
         exchanges += more
+        # a joint between posed segments against rivals with a segment of one or two markers,
+        # which the fixed-centre check cannot pose: by the same sphere misfit
+        posed_pair = np.isinf(judged) & np.isfinite(sphere)
+        undirected, more = pose_checked_edges(undirected, np.where(posed_pair, np.inf, sphere), pair_costs.cost,
+                                              judged=np.where(posed_pair, sphere, np.inf), test="sphere")
+        exchanges += more
         # near ties: where the costs cannot tell a joint from a rival, the poses decide
         tie_noise = cost_variance(residual_dof(mask[pair_costs.frames], seg, s))
         undirected, more = pose_checked_edges(undirected, misfit, pair_costs.cost, factor=1.0,
