@@ -39,7 +39,7 @@ from ..segment import Segmentation, combine_trials, left_out_markers, segment_ma
 from ..segment import segment_names as default_names
 from ..skeleton import SOLVED_JOINT_WEIGHT, Motion, Skeleton, fit_rigid, inverse_kinematics, measured_rms, solver_shape
 from ._options import FitOptions
-from ._split_refit import MAX_SPLITS, crowded_nonrigid, crowded_scatter, keep_split, replay, scatter_splits
+from ._split_refit import MAX_SPLITS, crowded_nonrigid, keep_split, read_scatter, replay, scatter_splits
 from ._warnings import (
     STACKLEVEL,
     require_one_tree,
@@ -330,11 +330,12 @@ class StagePlan:
         kept_warnings = list(caught)
         base = result.segmentation
         n = base.n_segments
+        reading = read_scatter(result.trial, result.segmentation) if growable else None  # of the kept fit
         for _ in range(MAX_SPLITS if growable else 0):
             # Each count is tried even when the one before was not kept: one more segment
             # can cut a joined group where it is not the pair the flags name, and the next
             # count then cuts the flagged pair too.
-            scattered = crowded_scatter(result.trial, result.segmentation)
+            scattered = reading.crowded
             crowded = crowded_nonrigid(result.skeleton)
             n += 1
             if not (scattered or crowded) or n > min(base.max_segments, result.trial.n_markers):
@@ -342,7 +343,7 @@ class StagePlan:
             self._more("split")
             with self.stage(prep, "split"):
                 grown = self._segment(result.trial, n)
-            by_scatter = bool(scattered) and scatter_splits(result.trial, result.segmentation, grown, base)
+            by_scatter = bool(scattered) and scatter_splits(reading, read_scatter(result.trial, grown), grown, base)
             if not by_scatter and not crowded:
                 continue  # only the scatter flags, and this count does not mend them: nothing to fit
             self._more(*self.refit_stages)  # a progress bar's total grows by the refit's stages
@@ -361,6 +362,7 @@ class StagePlan:
             keep = candidate.skeleton is not None if by_scatter else keep_split(result, candidate, base, grown)
             if keep:
                 result, kept_warnings = candidate, list(caught)
+                reading = read_scatter(result.trial, result.segmentation)
         replay(kept_warnings, stacklevel)
         return self.motion(prep, result)
 

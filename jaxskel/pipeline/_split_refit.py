@@ -50,30 +50,28 @@ re-emitted. A given ``n_segments`` is never changed.
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..segment import Segmentation, count_singletons, crowded_flags, marker_scatter, scatter_flags
 
-__all__ = ["MAX_SPLITS", "crowded_nonrigid", "crowded_scatter", "keep_split", "replay", "scatter_splits"]
+__all__ = ["MAX_SPLITS", "ScatterReading", "crowded_nonrigid", "keep_split", "read_scatter", "replay", "scatter_splits"]
 
 #: Most segments added after the rigid fit (each one a further segmentation and fit).
 MAX_SPLITS = 2
 
 
 def crowded_nonrigid(skeleton: Any) -> tuple[str, ...]:
-    """The flagged markers (``skeleton.nonrigid_markers``) that share their segment with
-    another flagged marker, in label order."""
+    """The flagged markers (``skeleton.nonrigid_markers``) that share a segment of three or
+    more with another flagged marker (:func:`jaxskel.segment.crowded_flags`), in label
+    order: a group of two can only split into lone markers, which a kept split never adds
+    (:func:`keep_split`)."""
     if skeleton is None or not skeleton.nonrigid_markers:
         return ()
     labels = list(skeleton.marker_labels)
-    segments = np.asarray(skeleton.marker_segment)
-    seg_of = {lab: int(segments[labels.index(lab)]) for lab in skeleton.nonrigid_markers}
-    counts = np.bincount(list(seg_of.values()))
-    sizes = np.bincount(segments[segments >= 0])
-    # a group of two can only split into lone markers, which a kept split never adds (keep_split)
-    return tuple(lab for lab in labels if lab in seg_of and counts[seg_of[lab]] >= 2 and sizes[seg_of[lab]] >= 3)
+    flags = np.isin(labels, list(skeleton.nonrigid_markers))
+    return tuple(labels[i] for i in crowded_flags(skeleton.marker_segment, flags))
 
 
 def replay(caught: list[warnings.WarningMessage], stacklevel: int) -> None:
@@ -92,20 +90,28 @@ def keep_split(kept: Any, candidate: Any, base: Segmentation, grown: Segmentatio
     return fewer and count_singletons(grown.marker_segment) <= count_singletons(base.marker_segment)
 
 
-def crowded_scatter(trial: Any, segmentation: Segmentation) -> tuple[str, ...]:
-    """The markers that the groups' scatter flags (:func:`jaxskel.segment.scatter_flags`)
-    and that share a group of three or more with another flagged marker, in label order."""
+class ScatterReading(NamedTuple):
+    """What the groups' scatter flags on one segmentation (:func:`read_scatter`)."""
+
+    #: the flagged markers that share a group of three or more with another, in label order
+    crowded: tuple[str, ...]
+    #: how many markers it flags in all
+    flagged: int
+
+
+def read_scatter(trial: Any, segmentation: Segmentation) -> ScatterReading:
+    """The groups' scatter flags (:func:`jaxskel.segment.scatter_flags`) of ``segmentation``
+    on ``trial``, read from the segmentation alone, before any fit."""
     flags = scatter_flags(marker_scatter(trial.positions, segmentation.marker_segment))
-    return tuple(trial.labels[i] for i in crowded_flags(segmentation.marker_segment, flags))
+    crowded = crowded_flags(segmentation.marker_segment, flags)
+    return ScatterReading(tuple(trial.labels[i] for i in crowded), int(flags.sum()))
 
 
-def scatter_splits(trial: Any, kept: Segmentation, grown: Segmentation, base: Segmentation) -> bool:
+def scatter_splits(kept: ScatterReading, grown: ScatterReading, grown_segmentation: Segmentation,
+                   base: Segmentation) -> bool:
     """Whether a segmentation with one segment more mends what the groups' scatter flags:
     it flags fewer markers than the kept one and leaves no more single-marker segments
-    than the automatic count. Read from the segmentations alone, before any fit."""
-    def flagged(seg: Segmentation) -> int:
-        return int(scatter_flags(marker_scatter(trial.positions, seg.marker_segment)).sum())
-
-    if count_singletons(grown.marker_segment) > count_singletons(base.marker_segment):
+    than the automatic count."""
+    if count_singletons(grown_segmentation.marker_segment) > count_singletons(base.marker_segment):
         return False
-    return flagged(grown) < flagged(kept)
+    return grown.flagged < kept.flagged

@@ -81,8 +81,7 @@ def scatter_flags(scatter: np.ndarray) -> np.ndarray:
     if not known.any():
         return np.zeros(scatter.shape, dtype=bool)
     median = float(np.median(scatter[known]))
-    return known & (np.where(known, scatter, 0.0) > FLAG_FACTOR * median) & (
-        np.where(known, scatter, 0.0) > median + FLAG_MARGIN)
+    return (scatter > FLAG_FACTOR * median) & (scatter > median + FLAG_MARGIN)  # NaN compares False
 
 
 def crowded_flags(marker_segment: np.ndarray, flags: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import pytest
 
 from jaxskel import FitOptions, synth
 from jaxskel.pipeline import PreparedFit, StagePlan, _plan
-from jaxskel.pipeline._split_refit import MAX_SPLITS, crowded_nonrigid
+from jaxskel.pipeline._split_refit import MAX_SPLITS, ScatterReading, crowded_nonrigid
 from jaxskel.segment import segment_markers
 
 
@@ -74,7 +74,7 @@ def trial():
 @pytest.fixture
 def skeleton_reading_only(monkeypatch):
     """The split search as if the groups' scatter flagged nothing."""
-    monkeypatch.setattr(_plan, "crowded_scatter", lambda trial, segmentation: ())
+    monkeypatch.setattr(_plan, "read_scatter", lambda trial, segmentation: ScatterReading((), 0))
 
 
 def _prep(trial, n_segments=None):
@@ -293,7 +293,7 @@ def test_scatter_flags_that_no_count_mends_are_not_fitted(trial, monkeypatch):
     prep = _prep(trial)
     m0 = prep.segmentation.n_segments
     group = [lab for lab, s in zip(trial.labels, prep.segmentation.marker_segment) if s == 0][:2]
-    monkeypatch.setattr(_plan, "crowded_scatter", lambda trial, segmentation: tuple(group))
+    monkeypatch.setattr(_plan, "read_scatter", lambda trial, segmentation: ScatterReading(tuple(group), len(group)))
     judged = []
     monkeypatch.setattr(_plan, "scatter_splits", lambda *args: judged.append(args[2].n_segments) or False)
     calls = []
