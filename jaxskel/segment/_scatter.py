@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._errors import InputError
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
 from .._runtime import program_cache as _program_cache
@@ -43,7 +44,13 @@ def marker_scatter(positions: np.ndarray, marker_segment: np.ndarray, *, max_fra
     that segmentations of different counts reuse one compiled program.
     """
     positions = np.asarray(positions, dtype=float)
-    segment = np.asarray(marker_segment, dtype=int)
+    segment = np.asarray(marker_segment)
+    if positions.ndim != 3 or positions.shape[-1] != 3:
+        raise InputError(f"positions must be (frames, markers, 3) in metres, got shape {positions.shape}")
+    if segment.shape != positions.shape[1:2] or not np.issubdtype(segment.dtype, np.integer):
+        raise InputError(f"marker_segment must hold one integer group per marker ({positions.shape[1]}), got "
+                         f"{segment.dtype} of shape {segment.shape}; pass Segmentation.marker_segment")
+    segment = segment.astype(int)
     scatter = np.full(segment.shape, np.nan)
     groups = [np.flatnonzero(segment == s) for s in range(int(segment.max(initial=-1)) + 1)]
     groups = [g for g in groups if g.size >= 3]

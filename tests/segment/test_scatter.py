@@ -4,6 +4,7 @@ rigid groups at the noise, a joined pair of segments flagged on its smaller part
 import numpy as np
 import pytest
 
+import jaxskel
 from jaxskel import synth
 from jaxskel._runtime.precision import float64
 from jaxskel.segment import crowded_flags, marker_scatter, scatter_flags
@@ -78,3 +79,13 @@ def test_a_lone_flag_or_a_group_of_two_is_not_crowded():
     flags = np.array([1, 1, 0, 1, 1, 1, 0, 0, 1], dtype=bool)
     # group 0: two flags among three (crowded); group 1: a pair; group 2: one flag; -1: left out
     assert crowded_flags(segment, flags).tolist() == [0, 1]
+
+
+def test_bad_input_is_a_typed_error_that_says_what_to_pass(linkage):
+    trial, truth = linkage
+    with pytest.raises(jaxskel.InputError, match="positions must be"):
+        marker_scatter(trial.positions[..., :2], truth.marker_segment)
+    with pytest.raises(jaxskel.InputError, match="one integer group per marker"):
+        marker_scatter(trial.positions, truth.marker_segment[:-1])
+    with pytest.raises(jaxskel.InputError, match="one integer group per marker"):
+        marker_scatter(trial.positions, truth.marker_segment.astype(float))
