@@ -37,3 +37,36 @@ def test_score_finds_a_ball_joint_and_leaves_unposed_frames_empty():
 def test_score_needs_three_markers_on_each_segment():
     x, _ = _ball_joint()
     assert score_centres(x, np.arange(4), np.arange(4, 6)) is None
+
+
+def test_reference_drift_is_the_least_error_of_a_centre_fixed_in_the_group():
+    from bench.joint_centres import _marker_poses, reference_drift
+
+    x, centre = _ball_joint(seed=2)
+    group = np.arange(4, 7)
+    assert reference_drift(x, group, centre) < 1e-6  # the true joint is fixed in the group
+    # a reference 3 cm off in the world frame: it moves in the group's frame as the group turns
+    reference = centre + np.array([0.03, 0.0, 0.0])
+    drift = reference_drift(x, group, reference)
+    rot, t = _marker_poses(x[:, group])
+    local = np.einsum("fji,fj->fi", rot, reference - t)
+
+    def rms_error(c):  # a centre fixed at c in the group's frame, against the reference (mm)
+        return 1e3 * np.sqrt(np.mean(np.sum((np.einsum("fij,j->fi", rot, c) + t - reference) ** 2, axis=1)))
+
+    assert 5.0 < drift < 30.0
+    assert abs(rms_error(local.mean(axis=0)) - drift) < 1e-9  # attained at the mean place
+    rng = np.random.default_rng(0)
+    assert all(rms_error(local.mean(axis=0) + rng.normal(size=3) * 0.01) > drift for _ in range(20))
+    assert reference_drift(x, np.arange(4, 6), centre) is None
+
+
+def test_score_misfit_is_zero_at_a_true_joint_and_grows_at_a_displaced_reference():
+    from bench.joint_centres import score_misfits
+
+    x, centre = _ball_joint(seed=3)
+    best, at_true = score_misfits(x, np.arange(4), np.arange(4, 7), centre)
+    assert best < 1e-6 and at_true < 1e-6
+    best, at_shifted = score_misfits(x, np.arange(4), np.arange(4, 7), centre + np.array([0.0, 0.02, 0.0]))
+    assert best < 1e-6 and at_shifted > 5.0  # 2 cm off the joint, both segments turning
+    assert score_misfits(x, np.arange(4), np.arange(4, 6), centre) is None
