@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._errors import InputError
+from .._math.outliers import above_median
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
 from .._runtime import program_cache as _program_cache
@@ -83,12 +84,7 @@ def marker_scatter(positions: np.ndarray, marker_segment: np.ndarray, *, max_fra
 def scatter_flags(scatter: np.ndarray) -> np.ndarray:
     """The markers whose scatter is over ``FLAG_FACTOR`` x the median and the median +
     ``FLAG_MARGIN`` (boolean, ``False`` where the scatter is NaN)."""
-    scatter = np.asarray(scatter, dtype=float)
-    known = np.isfinite(scatter)
-    if not known.any():
-        return np.zeros(scatter.shape, dtype=bool)
-    median = float(np.median(scatter[known]))
-    return (scatter > FLAG_FACTOR * median) & (scatter > median + FLAG_MARGIN)  # NaN compares False
+    return above_median(scatter, FLAG_FACTOR, FLAG_MARGIN)
 
 
 def crowded_flags(marker_segment: np.ndarray, flags: np.ndarray) -> np.ndarray:

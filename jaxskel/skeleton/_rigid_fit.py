@@ -54,7 +54,8 @@ rotations identity, is the subject's posture in that frame.
 Markers whose residual RMS exceeds ``nonrigid_factor`` (3) times the median marker RMS
 and the median by more than 1 mm are reported as not rigidly attached (soft tissue, a
 marker on the wrong segment); the test is relative so that it adapts to the noise level
-of the recording, with the absolute margin keeping it quiet on nearly noise-free data.
+of the recording, with the absolute margin keeping it quiet on nearly noise-free data
+(:func:`jaxskel._math.outliers.above_median`, the rule the segmentation's scatter uses too).
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ from jaxtyping import Array, Float, Int
 from .._errors import ConvergenceWarning, DegenerateMotionError, DegenerateMotionWarning, InputError
 from .._math.anderson import anderson_step
 from .._math.linalg import spd_solve
+from .._math.outliers import above_median
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
 from .._math.rotation import quat_to_matrix, quat_to_matrix_np
@@ -113,6 +115,9 @@ JOINT_WEIGHT = 1.0
 #: before and after the refinement). A much smaller weight lets hinges drift along their
 #: axes again.
 SOLVED_JOINT_WEIGHT = 0.1
+
+#: A flagged marker's residual RMS is also this far (m) over the median (:func:`jaxskel._math.outliers.above_median`).
+NONRIGID_MARGIN = 1e-3
 
 
 # ----------------------------------------------------------------------- result
@@ -1079,8 +1084,7 @@ def fit_rigid(
     joint_offsets = np.stack([j_th, np.zeros_like(j_th)], axis=1)
     marker_rms = np.full(n_markers, np.nan)
     marker_rms[used] = marker_rms_used
-    med_rms = np.nanmedian(marker_rms_used) if np.isfinite(marker_rms_used).any() else np.nan
-    flagged = (marker_rms > nonrigid_factor * med_rms) & (marker_rms > med_rms + 1e-3)
+    flagged = above_median(marker_rms, nonrigid_factor, NONRIGID_MARGIN)
     # Hinge axes in the final parent frames (fitting-local -> rest-aligned).
     hinge_axis_rest = np.einsum("jab,jb->ja", r_rest[edges[:, 0]], hinge_axis_local)
     bones, bone_seg = [], []
