@@ -153,6 +153,24 @@ def test_short_take_whose_rigid_count_leaves_a_marker_alone_grows_to_the_most_ri
         assert len(set(legs)) == 3, parts
 
 
+def test_an_elbow_marker_clustered_with_the_forearm_goes_to_the_lone_upper_arm_marker():
+    """HDM05 bd (CMU set, 49 s): the eigengap's groups hold the left elbow marker with the
+    forearm marker, a group of two, and leave the upper-arm marker alone. The elbow is about
+    as rigid with the upper arm (8.0 mm) as with the forearm (5.9 mm) and the forearm marker
+    as rigid with the wrist pair (4.0, 5.7 mm), so the elbow joins the upper arm and the
+    forearm marker the wrist (``_pass_joint_marker``). Before, the lone upper-arm marker hung
+    as a leaf and the trunk was jointed to the forearm (``bench/real_trees.py``)."""
+    trial = jaxskel.load(DATA / "numediart" / "HDM_bd_05-01_01_120.c3d")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        trial, _ = jaxskel.clean.clean(trial)
+    seg = jaxskel.segment.segment_markers(trial)
+    groups = {frozenset(g) for g in seg.groups}
+    assert frozenset(("LUPA", "LELB")) in groups and frozenset(("LFRM", "LWRA", "LWRB")) in groups
+    assert seg.nonrigid_groups() == []
+    assert misplaced_markers(trial.labels, seg.marker_segment, seg.distance_std, seg.rigid_limit) == []
+
+
 @pytest.mark.extended  # about a minute on 2 cores; the segmentation above runs by default
 def test_numediart_85_12_tree_is_anatomical_with_default_settings():
     """numediart 85_12 (CMU set, 37 s), the whole default fit on the 13 rigid segments: every

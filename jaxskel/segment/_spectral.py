@@ -54,6 +54,11 @@ Following the paper:
   A short take in which some joints barely move gives such a spectrum: its eigengap
   joins whole limbs, and the first rigid count splits a lone marker off a segment of
   two.
+* Beyond the paper, whatever automatic count is taken, a lone marker whose joint marker
+  sits in a group of two takes it when the group's other marker joins a third group as
+  rigidly (:func:`_pass_joint_marker`): an elbow marker clustered with the forearm marker
+  leaves the upper-arm marker alone, and one segment of one marker cannot carry a joint
+  on each side.
 
 The measurements behind these departures (noise levels, counts on real recordings) are in
 docs/bench/evidence_from_docstrings.md.
@@ -483,6 +488,56 @@ def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
     return labels
 
 
+def _pass_joint_marker(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
+    """Give a one-marker group the joint marker of a two-marker group whose other marker
+    fits a third group.
+
+    :func:`_pair_lone_markers` never empties a group of two: its other marker would be left
+    alone. Here it is not: lone marker ``i`` takes ``p``, its most rigid partner, from the
+    group ``{p, q}``, and ``q`` joins group ``r``, when
+
+    * ``A_ip <= limit`` and ``A_ip <= ratio A_pq``: ``p`` is about as rigid with ``i`` as
+      with ``q`` (a marker on the joint);
+    * ``A_qj <= limit`` for every ``j`` of ``r``, and the median of ``A_qj`` over ``r`` is at
+      most ``ratio A_pq``: ``q`` is about as rigid with ``r`` as it was with ``p``. Of the
+      groups that qualify, ``r`` is the one with the smallest median.
+
+    Two groups of one and two markers become one of two, and ``r`` grows by one: one lone
+    marker fewer, one segment fewer, every group rigid. Lone markers are served from the
+    most rigid pair up; a group that has received or lost a marker is not touched again
+    (``a``: the (M, M) cost, NaN where unobserved). The labels come back renumbered
+    (:func:`_canonical`) where a marker moved, and as given otherwise.
+    """
+    given = labels
+    labels = labels.copy()
+    off = np.where(np.isnan(a), np.inf, a)
+    np.fill_diagonal(off, np.inf)
+    sizes = np.bincount(labels)
+    lone = np.flatnonzero(sizes[labels] == 1)
+    touched: set[int] = set()
+    for i in sorted(lone, key=lambda i: off[i].min()):
+        p = int(np.argmin(off[i]))
+        own, theirs = int(labels[i]), int(labels[p])
+        mates = np.flatnonzero(labels == theirs)
+        if len(mates) != 2 or {own, theirs} & touched:
+            continue
+        q = int(mates[mates != p][0])
+        if not (off[i, p] <= limit and off[i, p] <= ratio * off[p, q]):
+            continue
+        fits = {
+            int(r): float(np.median(off[q, labels == r]))
+            for r in np.unique(labels)
+            if int(r) not in {own, theirs} | touched and off[q, labels == r].max() <= limit
+        }
+        if not fits:
+            continue
+        r = min(fits, key=fits.__getitem__)
+        if fits[r] <= ratio * off[p, q]:
+            labels[p], labels[q] = own, r
+            touched |= {own, theirs, r}
+    return _canonical(labels) if touched else given
+
+
 #: The lower and upper quartiles and the largest value of a marker's costs to a group (:func:`_mend`).
 _MEND_QUANTILES = np.array([0.25, 0.75, 1.0])
 
@@ -736,6 +791,7 @@ def segment_markers(
         rule, labels, scores, best, rigid_count = grow_count(
             gap_choice, cluster, a_observed, limit, min(max_segments, m)
         )
+        labels = _pass_joint_marker(labels, a_observed, limit)
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
     )

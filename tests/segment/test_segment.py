@@ -18,7 +18,7 @@ from helpers import (
 import jaxskel
 from jaxskel import synth
 from jaxskel.segment import distance_std
-from jaxskel.segment._spectral import _mend, _pair_lone_markers, _score, white_noise
+from jaxskel.segment._spectral import _mend, _pair_lone_markers, _pass_joint_marker, _score, white_noise
 
 
 def test_distance_std_matches_numpy_and_masks():
@@ -300,6 +300,53 @@ def test_a_lone_marker_never_takes_a_cluster_marker_or_a_non_rigid_partner():
     a = _knee_costs(0.010, 0.008)
     a[0, 1] = a[1, 0] = np.nan
     np.testing.assert_array_equal(_pair_lone_markers(alone, a, 0.025), alone)
+
+
+def _arm_costs(**changes: float) -> np.ndarray:
+    """Distance stds (m) of an upper-arm marker U (0), an elbow marker E (1), a forearm
+    marker F (2), two wrist markers W1, W2 (3, 4) and a trunk cluster (5-7): E is on the
+    joint, rigid with U (8 mm) and F (6 mm); F is rigid with the wrist (4 and 5.7 mm)."""
+    names = "U E F W1 W2".split()
+    a = np.full((8, 8), 0.050)
+    pairs = {("U", "E"): 0.008, ("E", "F"): 0.006, ("F", "W1"): 0.004, ("F", "W2"): 0.0057, ("W1", "W2"): 0.0014,
+             ("U", "F"): 0.030, ("U", "W1"): 0.060, ("U", "W2"): 0.040, ("E", "W1"): 0.0105, ("E", "W2"): 0.0068}
+    for key, value in changes.items():
+        pairs[tuple(key.split("_"))] = value
+    for (u, v), value in pairs.items():
+        a[names.index(u), names.index(v)] = a[names.index(v), names.index(u)] = value
+    a[5:, 5:] = 0.001
+    np.fill_diagonal(a, 0.0)
+    return a
+
+
+def test_a_lone_marker_takes_a_joint_marker_whose_partner_joins_the_next_group():
+    """The elbow marker clustered with the forearm marker, the upper-arm marker alone: the
+    elbow goes to the upper arm and the forearm marker to the wrist pair (limit 9 mm), one
+    lone marker and one segment fewer; :func:`_pair_lone_markers` leaves it, since the
+    elbow's group would keep one marker."""
+    given = np.array([0, 1, 1, 2, 2, 3, 3, 3])
+    np.testing.assert_array_equal(_pair_lone_markers(given, _arm_costs(), 0.009), given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(), 0.009), [0, 0, 1, 1, 1, 2, 2, 2])
+
+
+def test_a_joint_marker_stays_where_its_partner_fits_nowhere_or_it_belongs_to_its_pair():
+    given = np.array([0, 1, 1, 2, 2, 3, 3, 3])
+    # the forearm marker is not rigid with the wrist pair (12 mm over the 9 mm limit)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W2=0.012), 0.009), given)
+    # nor, under a looser limit (25 mm), about as rigid with it as with the elbow (10 mm over 1.5 x 6 mm)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.010, F_W2=0.010), 0.025), given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.0085, F_W2=0.0085), 0.025),
+                                  [0, 0, 1, 1, 1, 2, 2, 2])
+    # the elbow far more rigid with the forearm (2 mm) than with the upper arm (8 mm): no joint marker
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(E_F=0.002), 0.009), given)
+    # the upper arm and the elbow would not make a rigid pair (10 mm over the limit)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(U_E=0.010, E_F=0.008), 0.009), given)
+    # the donor is a group of three: _pair_lone_markers' case, not this one
+    three = np.array([0, 1, 1, 1, 2, 3, 3, 3])
+    np.testing.assert_array_equal(_pass_joint_marker(three, _arm_costs(), 0.009), three)
+    # nothing moves: the labels come back as given, not renumbered
+    unordered = np.array([3, 1, 1, 2, 2, 0, 0, 0])
+    assert _pass_joint_marker(unordered, _arm_costs(F_W2=0.012), 0.009) is unordered
 
 
 def test_count_candidates_stay_within_the_eigengap_search():
