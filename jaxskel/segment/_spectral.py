@@ -447,6 +447,15 @@ def grow_count(
     return rule, *chosen, rigid_count
 
 
+def _lone_partners(labels: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The costs ``a`` with NaN (unobserved) and the diagonal at infinity, and each lone marker
+    of ``labels`` with its most rigid partner, ``(i, p)``, the most rigid pair first."""
+    off = np.where(np.isnan(a), np.inf, a)
+    np.fill_diagonal(off, np.inf)
+    lone = np.flatnonzero(np.bincount(labels)[labels] == 1)
+    return off, [(int(i), int(np.argmin(off[i]))) for i in sorted(lone, key=lambda i: off[i].min())]
+
+
 def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
     """Give a one-marker group the marker on the joint next to it, where there is one.
 
@@ -467,13 +476,9 @@ def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
     NaN where unobserved).
     """
     labels = labels.copy()
-    sizes = np.bincount(labels)
-    off = np.where(np.isnan(a), np.inf, a)
-    np.fill_diagonal(off, np.inf)
-    lone = np.flatnonzero(sizes[labels] == 1)
+    off, candidates = _lone_partners(labels, a)
     touched: set[int] = set()
-    for i in sorted(lone, key=lambda i: off[i].min()):
-        p = int(np.argmin(off[i]))
+    for i, p in candidates:
         own, theirs = int(labels[i]), int(labels[p])
         mates = np.flatnonzero(labels == theirs)
         mates = mates[mates != p]
@@ -510,13 +515,9 @@ def _pass_joint_marker(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
     """
     given = labels
     labels = labels.copy()
-    off = np.where(np.isnan(a), np.inf, a)
-    np.fill_diagonal(off, np.inf)
-    sizes = np.bincount(labels)
-    lone = np.flatnonzero(sizes[labels] == 1)
+    off, candidates = _lone_partners(labels, a)
     touched: set[int] = set()
-    for i in sorted(lone, key=lambda i: off[i].min()):
-        p = int(np.argmin(off[i]))
+    for i, p in candidates:
         own, theirs = int(labels[i]), int(labels[p])
         mates = np.flatnonzero(labels == theirs)
         if len(mates) != 2 or {own, theirs} & touched:
