@@ -17,6 +17,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 from human_markers import (
@@ -167,8 +168,30 @@ def test_an_elbow_marker_clustered_with_the_forearm_goes_to_the_lone_upper_arm_m
     seg = jaxskel.segment.segment_markers(trial)
     groups = {frozenset(g) for g in seg.groups}
     assert frozenset(("LUPA", "LELB")) in groups and frozenset(("LFRM", "LWRA", "LWRB")) in groups
+    assert seg.passed_joint_markers == (("LELB", "LUPA", "LFRM"),)
+    assert seg.n_segments == seg.eigengap_segments - 1 and seg.count_rule == "eigengap"
     assert seg.nonrigid_groups() == []
     assert misplaced_markers(trial.labels, seg.marker_segment, seg.distance_std, seg.rigid_limit) == []
+
+
+@pytest.mark.extended  # about 90 s on 2 cores; the segmentation above runs by default
+def test_the_passed_elbow_marker_gives_the_trunk_its_upper_arm_and_says_so(tmp_path):
+    """HDM05 bd, the whole default fit: the trunk is jointed to the left upper arm and the upper
+    arm to the forearm (the trunk was jointed to the forearm before); the summary and the
+    result file say which joint marker was passed and why the count is one below the
+    eigengap's."""
+    result = _fit("numediart/HDM_bd_05-01_01_120.c3d", None)
+    labels, seg = result.trial.labels, result.segmentation.marker_segment
+    parts = segment_parts(labels, seg)
+    edges = {frozenset((parts[a], parts[b])) for a, b in result.edges.tolist()}
+    assert {frozenset(("thorax", "L upper arm")), frozenset(("L upper arm", "L forearm"))} <= edges
+    assert not [e for e in implausible_edges(labels, seg, result.edges) if "L forearm" in e or "L upper arm" in e]
+    assert "less 1 where a marker on a joint left its group of two for a lone marker (LELB to the lone LUPA" in (
+        result.summary())
+    path = tmp_path / "hdm.h5"
+    result.save(str(path))
+    with h5py.File(path, "r") as f:
+        assert [[v.decode() for v in row] for row in f["segments/passed_joint_markers"][()]] == [["LELB", "LUPA", "LFRM"]]
 
 
 @pytest.mark.extended  # about a minute on 2 cores; the segmentation above runs by default

@@ -82,6 +82,8 @@ def plot_spectrum(result: Any, ax: Any = None) -> Any:
     if seg.n_segments != seg.eigengap_segments:
         how = {"rigid": "grown until rigid", "most rigid": "grown to the most rigid",
                "split": "grown after the rigid fit"}.get(seg.count_rule, seg.count_rule)
+        if seg.passed_joint_markers:
+            how += f", less {len(seg.passed_joint_markers)}: joint markers passed"
         ax.axvline(seg.n_segments + 0.5, color="C2", lw=1, ls="--", label=f"used: {seg.n_segments} ({how})")
     ax.set_xlabel("k")
     ax.set_ylabel("eigenvalue of the normalised affinity")

@@ -12,6 +12,8 @@ Schema version 1 (documented in the README, "Result file"):
   :mod:`jaxskel.segment._names`; a file without them is read with them derived the same way),
   ``sizes`` (S,) int, ``eigenvalues``, ``distance_std``;
   ``split_markers`` (the flagged markers that grew the count, see :mod:`jaxskel.pipeline._split_refit`);
+  ``passed_joint_markers`` (n, 3) str (joint marker, lone marker, partner: a joint marker that left its group of
+  two for a lone marker, its partner joining a third group; one segment fewer each);
   ``left_out_labels``, ``left_out_reasons`` (markers the motion cannot place, left out of the
   skeleton, and why: :func:`jaxskel.segment.left_out_markers`); ``still_spans`` (n, 2) the
   frame ranges of still trials, which the joint stages leave out;
@@ -176,6 +178,7 @@ def save_result(
             g.attrs["split_from"] = seg.split_from
             g.attrs["rigid_count"] = seg.rigid_count
             put(g, "split_markers", np.asarray(seg.split_markers, dtype=str))
+            put(g, "passed_joint_markers", np.asarray(seg.passed_joint_markers, dtype=str).reshape(-1, 3))
             put(g, "left_out_labels", np.asarray(list(seg.left_out), dtype=str))
             put(g, "left_out_reasons", np.asarray(list(seg.left_out.values()), dtype=str))
             put(g, "still_spans", np.asarray(seg.still_spans, dtype=np.int64).reshape(-1, 2))

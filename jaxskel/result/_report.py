@@ -37,6 +37,11 @@ def summary_text(result: Any) -> str:
         f"{', '.join(seg.split_markers)} with the rest of their group (two or more in one group, by the group's "
         f"scatter or the rigid skeleton); compare n_segments={seg.split_from}",
     }[seg.count_rule]
+    if seg.passed_joint_markers:
+        moves = "; ".join(f"{joint} to the lone {lone}, {partner} to its nearest rigid group"
+                          for joint, lone, partner in seg.passed_joint_markers)
+        rule += (f", less {len(seg.passed_joint_markers)} where a marker on a joint left its group of two for a "
+                 f"lone marker ({moves})")
     lines.append(
         f"segment count: {rule}; largest eigengaps after k = {gaps}; "
         f"white noise {1e3 * seg.white_noise:.2f} mm (taken out of A)"

@@ -270,6 +270,11 @@ class Segmentation:
         Frame ranges ``(start, stop)`` of trials fitted together in which no two segments
         move relative to each other (:func:`jaxskel.segment.still_trials`: a static pose);
         the joint stages leave them out, the skeleton and the motion use them.
+    passed_joint_markers
+        With an automatic count: ``(joint marker, lone marker, partner)`` labels for each
+        joint marker that left its group of two for a lone marker while its partner joined
+        a third group (:func:`_pass_joint_marker`); each makes one segment fewer than
+        :attr:`count_rule`'s count.
     """
 
     labels: tuple[str, ...]
@@ -292,6 +297,7 @@ class Segmentation:
     white_noise: float = 0.0
     left_out: dict[str, str] = dataclasses.field(default_factory=dict)
     still_spans: tuple[tuple[int, int], ...] = ()
+    passed_joint_markers: tuple[tuple[str, str, str], ...] = ()
 
     @property
     def groups(self) -> list[tuple[str, ...]]:
@@ -493,7 +499,9 @@ def _pair_lone_markers(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
     return labels
 
 
-def _pass_joint_marker(labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO) -> np.ndarray:
+def _pass_joint_marker(
+    labels: np.ndarray, a: np.ndarray, limit: float, ratio: float = MEND_RATIO
+) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """Give a one-marker group the joint marker of a two-marker group whose other marker
     fits a third group.
 
@@ -510,13 +518,15 @@ def _pass_joint_marker(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
     Two groups of one and two markers become one of two, and ``r`` grows by one: one lone
     marker fewer, one segment fewer, every group rigid. Lone markers are served from the
     most rigid pair up; a group that has received or lost a marker is not touched again
-    (``a``: the (M, M) cost, NaN where unobserved). The labels come back renumbered
-    (:func:`_canonical`) where a marker moved, and as given otherwise.
+    (``a``: the (M, M) cost, NaN where unobserved). Returns the labels, renumbered
+    (:func:`_canonical`) where a marker moved and as given otherwise, and the moves
+    ``(p, i, q)``.
     """
     given = labels
     labels = labels.copy()
     off, candidates = _lone_partners(labels, a)
     touched: set[int] = set()
+    moves: list[tuple[int, int, int]] = []
     for i, p in candidates:
         own, theirs = int(labels[i]), int(labels[p])
         mates = np.flatnonzero(labels == theirs)
@@ -536,7 +546,8 @@ def _pass_joint_marker(labels: np.ndarray, a: np.ndarray, limit: float, ratio: f
         if fits[r] <= ratio * off[p, q]:
             labels[p], labels[q] = own, r
             touched |= {own, theirs, r}
-    return _canonical(labels) if touched else given
+            moves.append((p, int(i), q))
+    return (_canonical(labels) if moves else given), moves
 
 
 #: The lower and upper quartiles and the largest value of a marker's costs to a group (:func:`_mend`).
@@ -779,6 +790,7 @@ def segment_markers(
 
     limit = float(rigid_ratio) * sig if rigid_ratio is not None else np.inf
     rigid_count = 0
+    passed: tuple[tuple[str, str, str], ...] = ()
     one_group = np.zeros(m, dtype=int)
     if n_segments is not None:
         rule, (labels, scores, best) = "given", cluster(n_segments)
@@ -792,7 +804,8 @@ def segment_markers(
         rule, labels, scores, best, rigid_count = grow_count(
             gap_choice, cluster, a_observed, limit, min(max_segments, m)
         )
-        labels = _pass_joint_marker(labels, a_observed, limit)
+        labels, moves = _pass_joint_marker(labels, a_observed, limit)
+        passed = tuple((trial.labels[p], trial.labels[i], trial.labels[q]) for p, i, q in moves)
     unobserved = tuple(
         (int(i), int(j)) for i, j in zip(*np.nonzero(~observed)) if i < j
     )
@@ -813,6 +826,7 @@ def segment_markers(
         rigid_limit=float(np.sqrt(limit**2 + 2.0 * noise**2)),
         rigid_count=rigid_count,
         white_noise=noise,
+        passed_joint_markers=passed,
     )
 
 

@@ -326,27 +326,30 @@ def test_a_lone_marker_takes_a_joint_marker_whose_partner_joins_the_next_group()
     elbow's group would keep one marker."""
     given = np.array([0, 1, 1, 2, 2, 3, 3, 3])
     np.testing.assert_array_equal(_pair_lone_markers(given, _arm_costs(), 0.009), given)
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(), 0.009), [0, 0, 1, 1, 1, 2, 2, 2])
+    labels, moves = _pass_joint_marker(given, _arm_costs(), 0.009)
+    np.testing.assert_array_equal(labels, [0, 0, 1, 1, 1, 2, 2, 2])
+    assert moves == [(1, 0, 2)]  # the elbow (1) to the upper arm (0), its partner (2) to the wrist
 
 
 def test_a_joint_marker_stays_where_its_partner_fits_nowhere_or_it_belongs_to_its_pair():
     given = np.array([0, 1, 1, 2, 2, 3, 3, 3])
     # the forearm marker is not rigid with the wrist pair (12 mm over the 9 mm limit)
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W2=0.012), 0.009), given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W2=0.012), 0.009)[0], given)
     # nor, under a looser limit (25 mm), about as rigid with it as with the elbow (10 mm over 1.5 x 6 mm)
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.010, F_W2=0.010), 0.025), given)
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.0085, F_W2=0.0085), 0.025),
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.010, F_W2=0.010), 0.025)[0], given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(F_W1=0.0085, F_W2=0.0085), 0.025)[0],
                                   [0, 0, 1, 1, 1, 2, 2, 2])
     # the elbow far more rigid with the forearm (2 mm) than with the upper arm (8 mm): no joint marker
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(E_F=0.002), 0.009), given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(E_F=0.002), 0.009)[0], given)
     # the upper arm and the elbow would not make a rigid pair (10 mm over the limit)
-    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(U_E=0.010, E_F=0.008), 0.009), given)
+    np.testing.assert_array_equal(_pass_joint_marker(given, _arm_costs(U_E=0.010, E_F=0.008), 0.009)[0], given)
     # the donor is a group of three: _pair_lone_markers' case, not this one
     three = np.array([0, 1, 1, 1, 2, 3, 3, 3])
-    np.testing.assert_array_equal(_pass_joint_marker(three, _arm_costs(), 0.009), three)
+    np.testing.assert_array_equal(_pass_joint_marker(three, _arm_costs(), 0.009)[0], three)
     # nothing moves: the labels come back as given, not renumbered
     unordered = np.array([3, 1, 1, 2, 2, 0, 0, 0])
-    assert _pass_joint_marker(unordered, _arm_costs(F_W2=0.012), 0.009) is unordered
+    labels, moves = _pass_joint_marker(unordered, _arm_costs(F_W2=0.012), 0.009)
+    assert labels is unordered and moves == []
 
 
 def test_count_candidates_stay_within_the_eigengap_search():
