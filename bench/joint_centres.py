@@ -81,6 +81,17 @@ def _marker_poses(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, t
 
 
+def _score_system(ra, ta, rb, tb) -> tuple[np.ndarray, np.ndarray]:
+    """SCoRE's linear system over the frames given: ``lhs`` (3F, 6) and ``rhs`` (3F,) with
+    ``lhs @ (c_a, c_b) = rhs`` wherever ``R_a c_a + t_a = R_b c_b + t_b``."""
+    return np.concatenate([ra, -rb], axis=2).reshape(-1, 6), (tb - ta).reshape(-1)
+
+
+def _in_frame(rot: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``points`` (F, 3) in the frames of poses ``(rot, t)``: ``R_f^T (p_f - t_f)``."""
+    return np.einsum("fji,fj->fi", rot, points - t)
+
+
 def score_centres(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """SCoRE (Ehrig et al. 2006): the joint centre (F, 3) fixed in the poses of marker groups
     ``a`` and ``b`` (indices, three or more each) of ``x`` (F, M, 3), ``R_a c_a + t_a = R_b c_b +
@@ -91,8 +102,7 @@ def score_centres(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray | N
     ra, ta = _marker_poses(x[:, a])
     rb, tb = _marker_poses(x[:, b])
     ok = np.isfinite(ta).all(axis=1) & np.isfinite(tb).all(axis=1)
-    lhs = np.concatenate([ra[ok], -rb[ok]], axis=2).reshape(-1, 6)
-    c = np.linalg.lstsq(lhs, (tb[ok] - ta[ok]).reshape(-1), rcond=None)[0]
+    c = np.linalg.lstsq(*_score_system(ra[ok], ta[ok], rb[ok], tb[ok]), rcond=None)[0]
     return 0.5 * (ra @ c[:3] + ta + rb @ c[3:] + tb)
 
 
@@ -105,7 +115,7 @@ def reference_drift(x: np.ndarray, group: np.ndarray, reference: np.ndarray) -> 
     if len(group) < 3:
         return None
     rot, t = _marker_poses(x[:, group])
-    local = np.einsum("fji,fj->fi", rot, reference - t)
+    local = _in_frame(rot, t, reference)
     local = local[np.isfinite(local).all(axis=1)]
     return float(1e3 * np.sqrt(np.mean(np.sum((local - local.mean(axis=0)) ** 2, axis=1))))
 
@@ -120,11 +130,9 @@ def score_misfits(x: np.ndarray, a: np.ndarray, b: np.ndarray, reference: np.nda
     rb, tb = _marker_poses(x[:, b])
     ok = np.isfinite(ta).all(axis=1) & np.isfinite(tb).all(axis=1) & np.isfinite(reference).all(axis=1)
     ra, ta, rb, tb, r = ra[ok], ta[ok], rb[ok], tb[ok], reference[ok]
-    lhs = np.concatenate([ra, -rb], axis=2).reshape(-1, 6)
-    rhs = (tb - ta).reshape(-1)
+    lhs, rhs = _score_system(ra, ta, rb, tb)
     best = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
-    at_ref = np.concatenate([np.einsum("fji,fj->fi", ra, r - ta).mean(axis=0),
-                             np.einsum("fji,fj->fi", rb, r - tb).mean(axis=0)])
+    at_ref = np.concatenate([_in_frame(ra, ta, r).mean(axis=0), _in_frame(rb, tb, r).mean(axis=0)])
     rms = lambda c: float(1e3 * np.sqrt(np.sum((lhs @ c - rhs) ** 2) / len(r)))  # noqa: E731
     return rms(best), rms(at_ref)
 
