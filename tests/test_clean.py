@@ -128,3 +128,82 @@ def test_duplicates_are_found_whatever_the_marker_order():
         # equal sample counts, both named: the first of the two in the given order is kept
         first = "c" if order.index(2) < order.index(4) else "c2"
         assert report.duplicates == {({"c", "c2"} - {first}).pop(): first}
+
+
+# --- the running-median kernel against a naive reference ---------------------------------
+
+import contextlib  # noqa: E402
+import warnings  # noqa: E402
+
+from jaxskel.clean import _clean as clean_module  # noqa: E402
+
+
+def naive_deviation(x, present, half):
+    """The jump test's deviation written out with whole windows and numpy's nanmedian
+    (the definition :func:`_running_median_deviation` computes without forming them)."""
+    xp = np.where(present[:, None], x, np.nan)
+    nan_row = np.full((1, 3), np.nan)
+    prev, nxt = np.concatenate([nan_row, xp[:-1]]), np.concatenate([xp[1:], nan_row])
+    width, pad = 2 * half + 1, ((half, half), (0, 0))
+
+    def windows(a):
+        return np.lib.stride_tricks.sliding_window_view(np.pad(a, pad, constant_values=np.nan), width, axis=0)
+
+    with _quiet():
+        v = np.nan_to_num(np.nanmedian(windows(0.5 * (nxt - prev)), axis=-1))
+        a = np.nan_to_num(np.nanmedian(windows(nxt - 2.0 * xp + prev), axis=-1))
+        k = np.arange(-half, half + 1, dtype=float)
+        pred = windows(xp) - k * v[..., None] - 0.5 * k * k * a[..., None]
+        pred[..., half] = np.nan
+        med = np.nanmedian(pred, axis=-1)
+    seen = ~np.isnan(windows(xp)[:, 0, :])
+    need = max(1, half // 2)
+    two_sided = (seen[:, :half].sum(-1) >= need) & (seen[:, half + 1:].sum(-1) >= need)
+    return np.where(two_sided, np.linalg.norm(xp - med, axis=-1), 0.0)
+
+
+@contextlib.contextmanager
+def _quiet():
+    """numpy's nanmedian warns on all-NaN windows (inside gaps): expected here."""
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+@pytest.mark.parametrize("width", range(1, 17))
+def test_sorting_network_sorts_every_zero_one_input(width):
+    # the 0-1 principle: a comparator network that sorts every 0/1 input sorts every input
+    bits = (np.arange(2**width)[:, None] >> np.arange(width)[None]) & 1
+    wires = bits.astype(float).T.copy()
+    for i, j in clean_module._sorting_network(width):
+        wires[i], wires[j] = np.minimum(wires[i], wires[j]), np.maximum(wires[i], wires[j])
+    assert np.array_equal(wires.T, np.sort(bits, axis=1))
+
+
+@pytest.mark.parametrize("width", [1, 2, 3, 5, 12, 13, 16])
+def test_nanmedian_columns_is_the_sorted_median_exactly(width):
+    rng = np.random.default_rng(width)
+    values = rng.normal(size=(400, 3, width)).round(1)  # ties on purpose
+    values[rng.random(values.shape) < 0.15] = np.nan
+    values[:20] = np.nan  # all-NaN windows
+    got = clean_module._nanmedian_columns([values[..., j] for j in range(width)])
+    with _quiet():
+        want = np.nanmedian(values, axis=-1)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(got, clean_module._nanmedian_last(values), equal_nan=True)
+
+
+@pytest.mark.parametrize("n_frames", [1, 2, 3, 7, 13, 40, 500])
+def test_running_median_deviation_matches_the_naive_windows(n_frames):
+    rng = np.random.default_rng(n_frames)
+    t = np.arange(n_frames) / 120.0
+    x = np.stack([np.sin(3 * t), np.cos(2 * t), t], -1)[:, None] + rng.normal(0, 0.002, (n_frames, 5, 3))
+    x[rng.integers(0, n_frames, 4), rng.integers(0, 5, 4)] += 0.05  # jumps
+    present = rng.random((n_frames, 5)) > 0.1
+    present[:, 3] = False  # never seen
+    present[n_frames // 3 : n_frames // 3 + 20, 1] = False  # a gap longer than the window
+    batched = clean_module._running_median_deviation(x, present, 6)  # every marker at once
+    for m in range(5):
+        want = naive_deviation(x[:, m], present[:, m], 6)
+        assert np.array_equal(batched[:, m], want, equal_nan=True)
+        assert np.array_equal(clean_module._running_median_deviation(x[:, m], present[:, m], 6), want, equal_nan=True)

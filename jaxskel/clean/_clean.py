@@ -34,6 +34,7 @@ This runs on the host (numpy): it is a cheap, one-off pass over the data.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -123,6 +124,77 @@ def _nanmedian_last(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
+@functools.lru_cache(maxsize=None)
+def _sorting_network(width: int) -> tuple[tuple[int, int], ...]:
+    """Comparators ``(i, j)``, ``i < j``, of Batcher's odd-even merge sort on ``width`` wires.
+
+    Built for the next power of two and pruned to ``width``: the missing wires hold
+    ``+inf``, so a comparator reaching one never moves a value and can be dropped.
+    Applied in order (wire ``i`` takes the min, ``j`` the max) it sorts any input.
+    """
+    size = 1 << max(0, (width - 1).bit_length())
+    out = []
+    t = 1
+    while t < size:
+        k = t
+        while k >= 1:
+            for j in range(k % t, size - k, 2 * k):
+                for i in range(min(k, size - j - k)):
+                    a, b = i + j, i + j + k
+                    if a // (2 * t) == b // (2 * t) and b < width:
+                        out.append((a, b))
+            k //= 2
+        t *= 2
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=None)
+def _selection_network(width: int, ranks: tuple[int, ...]) -> tuple[tuple[int, int, bool, bool], ...]:
+    """The comparators of :func:`_sorting_network` that the values at ``ranks`` depend on, as
+    ``(i, j, min needed, max needed)``: walked backwards from the wanted output wires, a
+    comparator neither of whose outputs is needed is dropped, and of the others only the
+    needed outputs are computed (both inputs then are needed)."""
+    needed = set(ranks)
+    kept = []
+    for i, j in reversed(_sorting_network(width)):
+        lo, hi = i in needed, j in needed
+        if lo or hi:
+            kept.append((i, j, lo, hi))
+            needed |= {i, j}
+    return tuple(reversed(kept))
+
+
+def _nanmedian_columns(columns: list[np.ndarray]) -> np.ndarray:
+    """``_nanmedian_last(np.stack(columns, axis=-1))``, exactly, without forming the windows.
+
+    Elements whose W values are all finite (all but those next to gaps) take the median
+    from :func:`_selection_network`: a comparator network outputs its inputs themselves
+    in sorted order, so the values at ranks ``(W - 1) // 2`` and ``W // 2`` are the ones
+    sorting finds, and their mean is computed as there. The others (some value NaN) are
+    gathered and sorted by :func:`_nanmedian_last`.
+    """
+    width = len(columns)
+    missing = np.zeros(columns[0].shape, dtype=np.int8)
+    for c in columns:
+        missing += np.isnan(c)
+    lo_rank, hi_rank = (width - 1) // 2, width // 2
+    wires: list[np.ndarray | None] = list(columns)
+    owned = [False] * width  # a wire still holding an input column is not written in place
+    for i, j, want_min, want_max in _selection_network(width, (lo_rank, hi_rank)):
+        a, b = wires[i], wires[j]
+        lo = np.minimum(a, b, out=a if owned[i] and not want_max else None) if want_min else a
+        if want_max:
+            wires[j] = np.maximum(a, b, out=b if owned[j] else None)
+            owned[j] = True
+        if want_min:
+            wires[i], owned[i] = lo, True
+    med = 0.5 * (wires[lo_rank] + wires[hi_rank])
+    partial = np.nonzero(missing)
+    if partial[0].size:
+        med[partial] = _nanmedian_last(np.stack([c[partial] for c in columns], axis=-1))
+    return med
+
+
 def _running_median_deviation(x: np.ndarray, present: np.ndarray, half: int) -> np.ndarray:
     """Distance of each sample from a robust, velocity-compensated local prediction.
 
@@ -132,33 +204,57 @@ def _running_median_deviation(x: np.ndarray, present: np.ndarray, half: int) -> 
     the prediction is the median of those. Medians make a jump of up to ``half``
     frames unable to move the prediction; the velocity and acceleration terms
     remove the lag a plain running median has on fast or curving motion, leaving
-    an error of order jerk * (k / rate)^3. Zero where absent or one-sided.
+    an error of order jerk * (k / rate)^3. Zero where one-sided (fewer than ``half // 2``
+    present neighbours on a side), NaN where absent.
+
+    ``x`` is ``(F, ..., 3)`` and ``present`` ``(F, ...)``: any number of trajectories
+    along the middle axes, each on its own. A window's values are ``2 half + 1``
+    shifted slices of the padded series (its columns), never a ``(F, ..., W)`` copy;
+    the medians are :func:`_nanmedian_columns`.
     """
-    xp = np.where(present[:, None], x, np.nan)
-    nan_row = np.full((1, 3), np.nan)
+    xp = np.where(present[..., None], x, np.nan)
+    nan_row = np.full((1,) + xp.shape[1:], np.nan)
     prev = np.concatenate([nan_row, xp[:-1]])
     nxt = np.concatenate([xp[1:], nan_row])
     vel = 0.5 * (nxt - prev)
     acc = nxt - 2.0 * xp + prev
     width = 2 * half + 1
-    pad = ((half, half), (0, 0))
+    n_frames = xp.shape[0]
+    pad = ((half, half),) + ((0, 0),) * (xp.ndim - 1)
 
-    def windows(a: np.ndarray) -> np.ndarray:  # (F, 3, W)
-        return np.lib.stride_tricks.sliding_window_view(np.pad(a, pad, constant_values=np.nan), width, axis=0)
+    def columns(a: np.ndarray) -> list[np.ndarray]:  # column k + half of every frame's window
+        padded = np.pad(a, pad, constant_values=np.nan)
+        return [padded[j : j + n_frames] for j in range(width)]
 
-    k = np.arange(-half, half + 1, dtype=float)
     # All-NaN windows (inside gaps) give NaN medians; those frames are absent anyway.
-    v = np.nan_to_num(_nanmedian_last(windows(vel)))  # (F, 3)
-    a = np.nan_to_num(_nanmedian_last(windows(acc)))
-    pred = windows(xp) - k * v[..., None] - 0.5 * k * k * a[..., None]
-    pred[..., half] = np.nan  # a sample does not predict itself
-    med = _nanmedian_last(pred)
+    v = np.nan_to_num(_nanmedian_columns(columns(vel)))  # (F, ..., 3)
+    a = np.nan_to_num(_nanmedian_columns(columns(acc)))
+    k = np.arange(-half, half + 1, dtype=float)
+    # a sample does not predict itself: its column is left out (a NaN there counts for nothing)
+    pred = [c - k[j] * v - 0.5 * k[j] * k[j] * a for j, c in enumerate(columns(xp)) if j != half]
+    med = _nanmedian_columns(pred)
     # One-sided windows (run ends) extrapolate and are not judged here; run ends
     # next to gaps are trimmed anyway.
-    pw = windows(xp)[:, 0, :]
+    seen = [~np.isnan(c[..., 0]) for c in columns(xp)]
     need = max(1, half // 2)
-    two_sided = ((~np.isnan(pw[:, :half])).sum(-1) >= need) & ((~np.isnan(pw[:, half + 1 :])).sum(-1) >= need)
+    two_sided = (sum(seen[:half]) >= need) & (sum(seen[half + 1 :]) >= need)
     return np.where(two_sided, np.linalg.norm(xp - med, axis=-1), 0.0)
+
+
+#: Trajectory values (frames x markers x 3) per block of :func:`_deviations`: a block's
+#: window columns stay in cache.
+_BLOCK_VALUES = 1 << 16
+
+
+def _deviations(x: np.ndarray, present: np.ndarray, half: int) -> np.ndarray:
+    """:func:`_running_median_deviation` of every marker of ``x`` (F, M, 3), in blocks of
+    markers of about :data:`_BLOCK_VALUES` values (bounded memory), a thread per core
+    (numpy's ufuncs release the GIL)."""
+    per_block = max(1, _BLOCK_VALUES // max(1, 3 * x.shape[0]))
+    blocks = [slice(lo, lo + per_block) for lo in range(0, x.shape[1], per_block)]
+    with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, 4, len(blocks)))) as pool:
+        parts = list(pool.map(lambda b: _running_median_deviation(x[:, b], present[:, b], half), blocks))
+    return np.concatenate(parts, axis=1) if parts else np.zeros(present.shape)
 
 
 _UNNAMED = re.compile(r"^\*\d+$")
@@ -300,19 +396,13 @@ def clean(
     if reject_jumps and n_frames >= 3:
         # At least two frames each side, so jumps of up to two frames are always caught.
         half = max(2, int(round(0.5 * jump_window_s * rate)))
-        seen = [m for m in range(n_markers) if present[:, m].any()]
-
-        def deviation(m: int) -> np.ndarray:
-            return np.concatenate([
-                _running_median_deviation(pos[a:b, m], present[a:b, m], half) if b - a >= 3 else np.zeros(b - a)
-                for a, b in bounds
-            ])
-
-        # One marker at a time bounds memory; numpy's sorts release the GIL, so a
-        # thread per core runs markers side by side.
-        with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, 4))) as pool:
-            deviations = pool.map(deviation, seen)
-        for m, dev in zip(seen, deviations):
+        seen = np.flatnonzero(present.any(axis=0))
+        deviations = np.zeros(present.shape)
+        for first, last in bounds:
+            if last - first >= 3:
+                deviations[first:last, seen] = _deviations(pos[first:last, seen], present[first:last, seen], half)
+        for m in seen:
+            dev = deviations[:, m]
             d = dev[present[:, m] & (dev > 0)]
             if d.size == 0:
                 continue

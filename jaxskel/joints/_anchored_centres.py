@@ -142,9 +142,9 @@ class AnchoredCentres:
 
 
 def _segment_poses(
-    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int, max_frames: int
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int, max_frames: int, frames: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Marker-only poses of every segment in every frame.
+    """Marker-only poses of every segment in every frame (or only in ``frames``).
 
     The mean cloud of each segment comes from the rigid stage's generalised Procrustes
     (passes until the mean cloud settles, at most eight) on at most ``max_frames`` evenly
@@ -155,7 +155,10 @@ def _segment_poses(
     Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
     onto their mean cloud, and ``posed`` (F, S): the frame sees three of the segment's
     markers and the segment has a frame at all (three or more markers, three frames that
-    see them all, a cloud that is not (nearly) collinear).
+    see them all, a cloud that is not (nearly) collinear). With ``frames`` (indices), F is
+    ``len(frames)``: the mean clouds and which segments have a frame are still the whole
+    recording's, and each frame's alignment is its own, so these rows are the whole
+    recording's rows ``frames``.
     """
     n_frames = x.shape[0]
     members = [np.flatnonzero(seg == s) for s in range(n_seg)]
@@ -176,7 +179,8 @@ def _segment_poses(
             procrustes, sub_pts, sub_w, sub_pts[first, np.arange(n_seg)], sub_w[first, np.arange(n_seg)]
         )[0]
     )
-    pts, weights = clouds(np.arange(n_frames))
+    posed_frames = np.arange(n_frames) if frames is None else np.asarray(frames, dtype=int)
+    pts, weights = clouds(posed_frames)
     framed_ref = (sub_w.sum(axis=0) > 0).astype(float)
     rot, t = (np.asarray(a) for a in _program_cache.call(_align, pts, weights, ref, framed_ref))
     framed = np.zeros(n_seg, bool)
@@ -184,8 +188,9 @@ def _segment_poses(
         if m.size >= 3 and mask[:, m].all(axis=1).sum() >= 3:
             sv = np.linalg.svd(ref[s, : m.size] - ref[s, : m.size].mean(axis=0), compute_uv=False)
             framed[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
-    posed = (weights.sum(axis=-1) >= 3)[:n_frames] & framed[None]
-    return rot[:n_frames], t[:n_frames], posed
+    n_posed = posed_frames.size
+    posed = (weights.sum(axis=-1) >= 3)[:n_posed] & framed[None]
+    return rot[:n_posed], t[:n_posed], posed
 
 
 def _sweep_deg(

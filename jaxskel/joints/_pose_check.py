@@ -117,11 +117,12 @@ def segment_poses(
     x: np.ndarray, mask: np.ndarray, marker_segment: np.ndarray, n_segments: int, frames: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``R`` (F, S, 3, 3), ``t`` (F, S, 3), ``posed`` (F, S) on ``frames``: the anchored
-    refit's marker-only poses (``R x + t`` is a marker in its segment's frame), computed
-    on the whole recording with the same compiled alignment, identity where not posed."""
+    refit's marker-only poses (``R x + t`` is a marker in its segment's frame: the mean
+    clouds of the whole recording, each of ``frames`` aligned to them alone), identity
+    where not posed."""
     from ._anchored_centres import MAX_FRAMES, _segment_poses
 
-    rot, t, posed = (a[frames] for a in _segment_poses(x, mask, marker_segment, n_segments, MAX_FRAMES))
+    rot, t, posed = _segment_poses(x, mask, marker_segment, n_segments, MAX_FRAMES, frames=frames)
     rot = np.where(posed[..., None, None], rot, np.eye(3))
     t = np.where(posed[..., None], t, 0.0)
     return rot, t, posed
@@ -155,44 +156,58 @@ def sphere_misfit(
     s = n_segments
     seg = np.asarray(marker_segment)
     onehot = (seg[:, None] == np.arange(s)[None]).astype(float)  # (M, S)
-    p = np.einsum("faij,fmj->fami", rot, np.where(mask[..., None], x, 0.0)) + t[:, :, None, :]  # (F, S, M, 3)
-    w = (posed[:, :, None] & mask[:, None, :]).astype(float)  # (F, S, M)
-    n = w.sum(axis=0)  # (S, M)
-    mean_p = np.einsum("fam,famj->amj", w, p) / np.maximum(n, 1)[..., None]
-    sq = np.einsum("famj,famj->fam", p, p)
-    mean_sq = np.einsum("fam,fam->am", w, sq) / np.maximum(n, 1)
-    pc = p - mean_p[None]
-    cov = np.einsum("fam,fami,famj->amij", w, pc, pc)  # (S, M, 3, 3)
-    g = np.einsum("fam,fami,fam->ami", w, pc, sq - mean_sq[None])
-    centre = 0.5 * np.einsum("abij,abj->abi", np.linalg.pinv(np.einsum("amij,mb->abij", cov, onehot)),
-                             np.einsum("ami,mb->abi", g, onehot))  # (S_a, S_b, 3)
+    # Sums over frames are batched matrix products over (a, m): frames last, axes (S, M, F, ...).
+    xw = np.where(mask[..., None], x, 0.0)  # (F, M, 3)
+    p = np.matmul(xw[:, None], rot.transpose(0, 1, 3, 2)) + t[:, :, None, :]  # (F, S, M, 3)
+    p = np.ascontiguousarray(p.transpose(1, 2, 0, 3))  # (S, M, F, 3)
+    w = np.ascontiguousarray((posed.T[:, None, :] & mask.T[None, :, :]).astype(float))  # (S, M, F)
+    n = w.sum(axis=-1)  # (S, M)
+    inv_n = 1.0 / np.maximum(n, 1)
+
+    def mean_f(v: np.ndarray) -> np.ndarray:
+        """sum_f w v / n over the frames (last axis) of ``v`` (S, M, F)."""
+        return np.matmul(w[:, :, None, :], v[..., None])[..., 0, 0] * inv_n
+
+    def moments(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """sum_f w u u^T (S, M, 3, 3) and sum_f w u v (S, M, 3) of ``u`` (S, M, F, 3), ``v`` (S, M, F)."""
+        wu = w[..., None] * u
+        return np.matmul(wu.transpose(0, 1, 3, 2), u), np.matmul(wu.transpose(0, 1, 3, 2), v[..., None])[..., 0]
+
+    def per_pair(a_m: np.ndarray) -> np.ndarray:
+        """(S_a, M, ...) summed over each segment b's markers: (S_a, S_b, ...)."""
+        return np.moveaxis(np.tensordot(a_m, onehot, axes=([1], [0])), -1, 1)
+
+    mean_p = np.matmul(w[:, :, None, :], p)[:, :, 0] * inv_n[..., None]  # (S, M, 3)
+    sq = np.sum(p * p, axis=-1)  # (S, M, F)
+    pc = p - mean_p[:, :, None]
+    cov, g = moments(pc, sq - mean_f(sq)[..., None])
+    centre = 0.5 * np.matmul(np.linalg.pinv(per_pair(cov)), per_pair(g)[..., None])[..., 0]  # (S_a, S_b, 3)
     counts = np.maximum(onehot.sum(axis=0), 1)
 
     def about(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The misfit (S_a, S_b) about centres ``c`` (S_a, S_b, 3), each marker's offsets
-        from its centre (F, S, M, 3) and distances less their means (F, S, M)."""
-        off = p - c[:, seg][None]  # marker m about c[a, seg[m]]
-        dist = np.linalg.norm(off, axis=-1)
-        mean_d = np.einsum("fam,fam->am", w, dist) / np.maximum(n, 1)
-        var = np.einsum("fam,fam->am", w, (dist - mean_d[None]) ** 2) / np.maximum(n, 1)
-        return (var @ onehot) / counts[None], off / np.maximum(dist, 1e-12)[..., None], dist - mean_d[None]
+        from its centre (S, M, F, 3) and distances less their means (S, M, F)."""
+        off = p - c[:, seg][:, :, None]  # marker m about c[a, seg[m]]
+        dist = np.sqrt(np.sum(off * off, axis=-1))
+        resid = dist - mean_f(dist)[..., None]
+        var = mean_f(resid * resid)
+        return (var @ onehot) / counts[None], off / np.maximum(dist, 1e-12)[..., None], resid
 
     # The algebraic centre minimises the algebraic error, not the distances' variance: on a
     # short arc it lies off the centre that does (a true joint read at 10 mm^2 instead of
     # 3). Gauss-Newton on the variance from there, each pair keeping its best centre.
     misfit, unit, resid = about(centre)
     for _ in range(SPHERE_STEPS):
-        jac = unit - (np.einsum("fam,fami->ami", w, unit) / np.maximum(n, 1)[..., None])[None]  # -d resid / d c
-        normal = np.einsum("amij,mb->abij", np.einsum("fam,fami,famj->amij", w, jac, jac), onehot)
-        step = np.einsum("abij,abj->abi", np.linalg.pinv(normal), np.einsum("ami,mb->abi",
-                         np.einsum("fam,fami,fam->ami", w, jac, resid), onehot))
+        jac = unit - (np.matmul(w[:, :, None, :], unit)[:, :, 0] * inv_n[..., None])[:, :, None]  # -d resid / d c
+        normal, rhs = moments(jac, resid)
+        step = np.matmul(np.linalg.pinv(per_pair(normal)), per_pair(rhs)[..., None])[..., 0]
         trial_misfit, trial_unit, trial_resid = about(centre + step)
         better = trial_misfit < misfit
         if not better.any():
             break
         centre = np.where(better[..., None], centre + step, centre)
         misfit = np.where(better, trial_misfit, misfit)
-        keep = better[:, seg][None]  # (1, S, M): each marker follows its pair's centre
+        keep = better[:, seg][:, :, None]  # (S, M, 1): each marker follows its pair's centre
         unit = np.where(keep[..., None], trial_unit, unit)
         resid = np.where(keep, trial_resid, resid)
     enough = ((n < min_frames).astype(float) @ onehot) == 0

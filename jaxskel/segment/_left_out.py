@@ -84,6 +84,18 @@ def rigidity_limit(
     return float(rigid_ratio) * affinity_scale(noise_floor, sigma=sigma, sigma_min=sigma_min, sigma_factor=sigma_factor)
 
 
+def _pair_distances(x: np.ndarray) -> np.ndarray:
+    """(T, M, M) distances ``|x_k - x_l|`` of the markers of ``x`` (T, M, 3), one coordinate
+    at a time: ``sqrt((dx^2 + dy^2) + dz^2)``, the sum in ``np.linalg.norm``'s order (the
+    same bits), without a (T, M, M, 3) difference array."""
+    total = None
+    for c in np.moveaxis(x, -1, 0):
+        diff = c[:, :, None] - c[:, None, :]
+        diff *= diff
+        total = diff if total is None else np.add(total, diff, out=total)
+    return np.sqrt(total, out=total)
+
+
 class _RelativeMotion:
     """Pairwise distances of a recording's markers and their std over chosen frames."""
 
@@ -91,7 +103,7 @@ class _RelativeMotion:
         t, m = seen.shape
         x0 = np.where(seen[..., None], x, 0.0)
         self.both = seen[:, :, None] & seen[:, None, :]  # (T, M, M)
-        self.d = np.linalg.norm(x0[:, :, None, :] - x0[:, None, :, :], axis=-1) * self.both
+        self.d = _pair_distances(x0) * self.both
         self.w = self.both.reshape(t, m * m).astype(float)
         self.dd = self.d.reshape(t, m * m)
         self.m = m

@@ -353,3 +353,76 @@ def test_residual_dof_counts_the_redundant_distances_of_every_pair():
     assert dof[1, 2] == 4 * 1 + 0
     assert dof[0, 2] == 0  # 3 markers: no redundancy
     assert np.array_equal(dof, dof.T)
+
+
+def test_segment_poses_on_frames_are_the_whole_recordings_rows(sparse):
+    """Posing only the frames read gives, bit for bit, those rows of the poses of every
+    frame (the mean clouds are the whole recording's; each frame is aligned on its own)."""
+    from jaxskel.joints._anchored_centres import MAX_FRAMES, _segment_poses
+
+    x, mask, truth, frames = sparse
+    mask = mask.copy()
+    mask[100:400, :5] = False  # gaps: frames where some segments are not posed
+    s, seg = truth.n_segments, truth.marker_segment
+    rot_all, t_all, posed_all = _segment_poses(x, mask, seg, s, MAX_FRAMES)
+    rot, t, posed = segment_poses(x, mask, seg, s, frames)
+    assert np.array_equal(posed, posed_all[frames]) and (~posed).any() and posed.any()
+    assert np.array_equal(rot[posed], rot_all[frames][posed]) and np.array_equal(t[posed], t_all[frames][posed])
+    assert np.array_equal(rot[~posed], np.broadcast_to(np.eye(3), rot[~posed].shape)) and not t[~posed].any()
+
+
+def _sphere_misfit_einsum(x, mask, seg, s, frames, poses):
+    """The anchored sphere misfit written with one einsum per sum over frames (F, S, M
+    axes), the algebraic start and the Gauss-Newton steps exactly as documented."""
+    from jaxskel.joints._pose_check import SPHERE_STEPS
+
+    rot, t, posed = poses
+    x, mask = x[frames], mask[frames]
+    onehot = (seg[:, None] == np.arange(s)[None]).astype(float)
+    p = np.einsum("faij,fmj->fami", rot, np.where(mask[..., None], x, 0.0)) + t[:, :, None, :]
+    w = (posed[:, :, None] & mask[:, None, :]).astype(float)
+    n = np.maximum(w.sum(axis=0), 1)
+    sq = np.einsum("famj,famj->fam", p, p)
+    pc = p - (np.einsum("fam,famj->amj", w, p) / n[..., None])[None]
+    cov = np.einsum("fam,fami,famj->amij", w, pc, pc)
+    g = np.einsum("fam,fami,fam->ami", w, pc, sq - (np.einsum("fam,fam->am", w, sq) / n)[None])
+    centre = 0.5 * np.einsum("abij,abj->abi", np.linalg.pinv(np.einsum("amij,mb->abij", cov, onehot)),
+                             np.einsum("ami,mb->abi", g, onehot))
+    counts = np.maximum(onehot.sum(axis=0), 1)
+
+    def about(c):
+        off = p - c[:, seg][None]
+        dist = np.linalg.norm(off, axis=-1)
+        resid = dist - (np.einsum("fam,fam->am", w, dist) / n)[None]
+        var = np.einsum("fam,fam->am", w, resid**2) / n
+        return (var @ onehot) / counts[None], off / np.maximum(dist, 1e-12)[..., None], resid
+
+    misfit, unit, resid = about(centre)
+    for _ in range(SPHERE_STEPS):
+        jac = unit - (np.einsum("fam,fami->ami", w, unit) / n[..., None])[None]
+        normal = np.einsum("amij,mb->abij", np.einsum("fam,fami,famj->amij", w, jac, jac), onehot)
+        step = np.einsum("abij,abj->abi", np.linalg.pinv(normal),
+                         np.einsum("ami,mb->abi", np.einsum("fam,fami,fam->ami", w, jac, resid), onehot))
+        trial_misfit, trial_unit, trial_resid = about(centre + step)
+        better = trial_misfit < misfit
+        if not better.any():
+            break
+        centre = np.where(better[..., None], centre + step, centre)
+        misfit = np.where(better, trial_misfit, misfit)
+        keep = better[:, seg][None]
+        unit = np.where(keep[..., None], trial_unit, unit)
+        resid = np.where(keep, trial_resid, resid)
+    return misfit
+
+
+def test_sphere_misfit_matches_the_per_frame_einsum_formulation(sparse):
+    x, mask, truth, frames = sparse
+    mask = mask.copy()
+    mask[np.random.default_rng(3).random(mask.shape) < 0.1] = False  # scattered missing samples
+    s, seg = truth.n_segments, truth.marker_segment
+    poses = segment_poses(x, mask, seg, s, frames)
+    m = sphere_misfit(x, mask, seg, s, frames, MIN_PAIR_FRAMES, poses=poses)
+    want = _sphere_misfit_einsum(x, mask, seg, s, frames, poses)
+    finite = np.isfinite(m)
+    assert finite.sum() > s  # posed segments' pairs are judged
+    np.testing.assert_allclose(m[finite], want[finite], rtol=1e-10, atol=0)
