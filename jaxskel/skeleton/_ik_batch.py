@@ -87,7 +87,7 @@ from .._runtime import program_cache as _program_cache
 from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
 
-__all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solver_shape"]
+__all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solve_frames", "solver_shape", "with_offsets"]
 
 #: Weight of the default-pose pull in the Horn start, per point (as in ik_initial_guess).
 HORN_DEFAULT_WEIGHT = 1e-3
@@ -796,3 +796,88 @@ def solve(
     else:
         parts = [run(k) for k in range(n_chunks)]
     return {key: np.concatenate([p[key] for p in parts])[:n] for key in parts[0]}
+
+
+# ------------------------------------------------------- device-side helpers
+def with_offsets(
+    model: BatchModel, joint_parent: Float[Array, "J 3"], marker_offsets: Float[Array, "N 3"]
+) -> BatchModel:
+    """``model`` with its offset-dependent fields rebuilt from traced offsets (jittable).
+
+    The layout (slots, tree, weights) stays ``model``'s; ``marker_offsets`` (N, 3) is
+    indexed by the model's input columns (``marker_index``; slots of columns past N are
+    points at the segment's origin, as the rigid refinement's joint centres are),
+    ``joint_parent`` (J, 3) gives each joint in its parent's frame, and every joint sits
+    at its child's origin (``joint_child`` zero). This is :func:`batch_model` with
+    ``joint_offsets[:, 1] == 0`` for the offsets, so the rigid refinement can update the
+    skeleton on the device between IK sweeps. ``shape_moment`` is recomputed as there:
+    ``sum v v^T`` of the slots in use and the proximal joint, about their mean.
+    """
+    dtype = model.marker_weight.dtype
+    n_rows = marker_offsets.shape[0]
+    index = model.marker_index
+    in_use = model.marker_weight[..., 0] > 0  # (S, K)
+    inside = (index < n_rows) & in_use
+    off = jnp.where(inside[..., None], jnp.asarray(marker_offsets, dtype)[jnp.minimum(index, n_rows - 1)], 0.0)
+    n_seg = index.shape[0]
+    jp = jnp.zeros((n_seg, 3), dtype).at[model.joint_segment].set(jnp.asarray(joint_parent, dtype))
+    has = model.has_parent  # (S, 1); the proximal joint is a point at the origin (joint_child 0)
+    w = in_use.astype(dtype)
+    count = jnp.sum(w, axis=1) + has[:, 0]
+    mean = jnp.sum(w[..., None] * off, axis=1) / jnp.maximum(count, 1.0)[:, None]  # (S, 3)
+    v = off - mean[:, None]
+    cov = jnp.einsum("sk,ska,skb->sab", w, v, v) + has[:, 0, None, None] * mean[:, :, None] * mean[:, None, :]
+    moment = tuple(cov[:, a, b][:, None] for a, b in UPPER)
+    return dataclasses.replace(
+        model,
+        joint_parent=tuple(jp[:, a][:, None] for a in range(3)),
+        joint_child=tuple(jnp.zeros((n_seg, 1), dtype) for _ in range(3)),
+        marker_offsets=tuple(off[..., a][..., None] for a in range(3)),
+        shape_moment=moment,
+    )
+
+
+def solve_frames(
+    model: BatchModel,
+    x: Float[Array, "N M 3"],
+    mask: Bool[Array, "N M"],
+    t0: Float[Array, "N 3"],
+    q0: Float[Array, "N S 4"],
+    prior: Float[Array, "N S 4"],
+    prior_weight: Float[Array, " S"],
+    horn: Bool[Array, ""],
+    max_steps: Int[Array, ""],
+    *,
+    chunk: int = 64,
+) -> dict[str, Array]:
+    """:func:`solve_chunk` over all N frames inside a traced program (jittable): the
+    frames are padded to a multiple of ``chunk`` (absent markers, identity poses: done
+    at once) and the chunks run one after another (``lax.map``), each with its own
+    iteration count, as :func:`solve` runs them from the host. Same outputs as
+    :func:`solve` (frame-major, N rows)."""
+    n = x.shape[0]
+    pad = (-n) % chunk
+    dtype = x.dtype
+    ident = jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)
+
+    def padded(a, fill):
+        a = jnp.asarray(a)
+        if not pad:
+            return a
+        return jnp.concatenate([a, jnp.broadcast_to(jnp.asarray(fill, a.dtype), (pad, *a.shape[1:]))])
+
+    def chunks(a):
+        return a.reshape(-1, chunk, *a.shape[1:])
+
+    parts = tuple(chunks(a) for a in (
+        padded(x.astype(dtype), 0.0), padded(mask, False), padded(t0.astype(dtype), 0.0),
+        padded(q0.astype(dtype), ident), padded(prior.astype(dtype), ident),
+    ))
+    passes = jnp.asarray(HORN_PASSES, jnp.int32)
+
+    def one(args):
+        xc, mc, tc, qc, pc = args
+        return solve_chunk(model, xc, mc, tc, qc, pc, prior_weight, horn, max_steps, passes)
+
+    out = jax.lax.map(one, parts)
+    return {key: val.reshape(-1, *val.shape[2:])[:n] for key, val in out.items()}

@@ -39,7 +39,8 @@ skeleton, in two steps.
    linear least-squares solution for the offsets (normal equations assembled from
    per-frame rotation products). Each sweep cannot increase the cost (up to the weak IK
    pose prior); the loop stops when an offset update moves no offset by more than
-   ``xtol``, the updates Anderson-accelerated (``_refine``).
+   ``xtol``, the updates Anderson-accelerated. The whole alternation, its IK sweeps
+   included, is one device program (:mod:`jaxskel.skeleton._rigid_sweeps`, ``_refine``).
    Frames whose marker RMS after the first sweep is an outlier (above median + 5 MAD:
    swaps, jumps, a marker knocked loose) are left out. At most ``max_frames`` frames,
    spread evenly over the trial, are used.
@@ -66,18 +67,13 @@ import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
 
 from .._errors import ConvergenceWarning, DegenerateMotionError, DegenerateMotionWarning, InputError
-from .._math.anderson import anderson_step
-from .._math.linalg import spd_solve
 from .._math.outliers import above_median
 from .._math.padding import bucket_size
 from .._math.procrustes import procrustes
-from .._math.rotation import quat_to_matrix, quat_to_matrix_np
+from .._math.rotation import quat_to_matrix_np
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
@@ -92,11 +88,13 @@ from ._ik import (
     RESULT_MAX_STEPS,
     RESULT_SUCCESSFUL,
     IKModel,
-    _host_relative,
     ik_model,
     kinematic_chain,
 )
-from ._ik_batch import batch_model, solve, solver_shape
+from ._ik_batch import batch_model, solver_shape
+from ._rigid_sweeps import SweepProblem, alternate, offset_pairs
+from ._rigid_sweeps import offset_pairs as _offset_pairs  # noqa: F401  (tests reach them here)
+from ._rigid_sweeps import offset_system as _offset_system  # noqa: F401
 
 __all__ = ["Skeleton", "fit_rigid", "validate_tree"]
 
@@ -539,82 +537,6 @@ def _replace_hinges(
 
 
 # ------------------------------------------------------------------ refinement
-def _offset_pairs(coef: np.ndarray, unknown_segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The ordered segment pairs ``(a, b)`` whose ``R_a^T R_b`` the offset system needs, and
-    where each pair of unknowns finds its pair.
-
-    Unknowns ``u`` and ``v`` meet in the normal equations only through an observation that
-    depends on both (``coef[r, u] coef[r, v] != 0``): both lie on the path from the root to
-    that observation's segment, so their segments are one another's ancestors. A tree of
-    depth ``d`` needs about ``2 d S`` of the ``S^2`` pairs. Returns ``pairs`` (P, 2) and
-    ``pair_index`` (U, U): the row of ``pairs`` of ``(seg u, seg v)``, or P where no
-    observation joins ``u`` and ``v`` (a zero block).
-    """
-    used = np.asarray(coef) != 0  # (N, U)
-    seg = np.asarray(unknown_segment)
-    shared = (used[:, :, None] & used[:, None, :]).any(axis=0)  # (U, U)
-    u, v = np.nonzero(shared)
-    pairs = np.unique(np.stack([seg[u], seg[v]], axis=1), axis=0).reshape(-1, 2)
-    row = np.full((seg.max(initial=0) + 1,) * 2, len(pairs), dtype=np.int32)  # segment pair -> its row
-    row[pairs[:, 0], pairs[:, 1]] = np.arange(len(pairs))
-    pair_index = np.where(shared, row[seg[:, None], seg[None, :]], len(pairs)).astype(np.int32)
-    return pairs.astype(np.int32), pair_index
-
-
-def _offset_system(
-    rot: Float[Array, "F S 3 3"],
-    root_position: Float[Array, "F 3"],
-    obs: Float[Array, "F N 3"],
-    obs_weight: Float[Array, "F N"],
-    coef: Float[Array, "N U"],
-    unknown_segment: Int[Array, " U"],
-    pairs: Int[Array, "P 2"],
-    pair_index: Int[Array, "U U"],
-) -> tuple[Float[Array, "3U 3U"], Float[Array, " 3U"], Float[Array, ""]]:
-    """Normal equations of the offsets with the poses fixed (a linear least squares).
-
-    Observation r (marker or joint) in frame f is modelled as
-    ``t_root + sum_u coef[r, u] R_seg(u) theta_u``: a marker sums its own offset and the
-    parent-side offsets of the joints above it; a joint its own and those above. So
-    ``N[u, v] = sum_r coef[r, u] coef[r, v] T[r, seg u, seg v]`` with the per-observation
-    segment-pair sums ``T[r, a, b] = sum_f w_fr R_a(f)^T R_b(f)``, for the pairs of
-    :func:`_offset_pairs` only (``pair_index``: where each pair of unknowns finds its sum):
-    O(F N P), never a per-frame (U, U) product. Also returns ``sum w |x - t_root|^2`` for
-    the cost.
-    """
-    n_frames = rot.shape[0]
-    # R_a^T R_b as a broadcast product (a fused elementwise loop) and the frame sum as one
-    # matrix product: written as two einsums, XLA:CPU would run the first as a tiny matrix
-    # product per frame and fuse it into the second.
-    rtr = jnp.sum(rot[:, pairs[:, 0], :, :, None] * rot[:, pairs[:, 1], :, None, :], axis=2)  # (F, P, 3, 3)
-    pair_sums = (obs_weight.T @ rtr.reshape(n_frames, -1)).reshape((-1,) + rtr.shape[1:])
-    pair_sums = jnp.concatenate([pair_sums, jnp.zeros_like(pair_sums[:, :1])], axis=1)  # row P: no pair
-    block = pair_sums[:, pair_index]  # (N, U, U, 3, 3)
-    normal = jnp.einsum("ru,rv,ruvij->uivj", coef, coef, block)
-    target = obs - root_position[:, None, :]
-    weighted = jnp.einsum("ru,fra->fua", coef, obs_weight[..., None] * target)
-    rhs = jnp.einsum("fuai,fua->ui", rot[:, unknown_segment], weighted)
-    n_u = coef.shape[1]
-    return normal.reshape(3 * n_u, 3 * n_u), rhs.reshape(-1), jnp.sum(obs_weight * jnp.sum(target * target, -1))
-
-
-@jax.jit
-def _offset_update(rotations, root_position, obs, weight, coef, unknown_segment, pairs, pair_index, theta_old):
-    """Exact least-squares offsets for fixed poses, and the cost they reach."""
-    normal, rhs, const = _offset_system(
-        quat_to_matrix(rotations), root_position, obs, weight, coef, unknown_segment, pairs, pair_index
-    )
-    # A whisper of ridge towards the current offsets keeps directions that no frame
-    # constrains (a joint with nothing below it ever seen) where they are.
-    ridge = 1e-10 * jnp.trace(normal) / normal.shape[0]
-    eye = jnp.eye(normal.shape[0], dtype=obs.dtype)
-    # SPD (normal matrix plus a ridge): Cholesky in plain XLA (jaxskel._math.linalg), not
-    # LAPACK's LU.
-    theta = spd_solve(normal + ridge * eye, rhs + ridge * theta_old)
-    cost = (const - 2 * theta @ rhs + theta @ normal @ theta) / jnp.maximum(jnp.sum(weight), 1.0)
-    return theta, cost
-
-
 def _refine(
     marker_theta: np.ndarray,
     joint_theta: np.ndarray,
@@ -633,7 +555,8 @@ def _refine(
     max_sweeps: int,
     max_steps: int,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], list[float], list[float], bool]:
-    """Alternate IK sweeps and exact offset updates (module docstring).
+    """Alternate IK sweeps and exact offset updates (module docstring), on the device
+    (:func:`jaxskel.skeleton._rigid_sweeps.alternate`).
 
     A sweep is the batched IK of :mod:`jaxskel.skeleton._ik_batch` over all fitting frames, the
     joint centres entering as extra "markers" (weight ``joint_weight^2``) at the proximal
@@ -643,69 +566,47 @@ def _refine(
     the offset update ``theta* = G(theta)`` until it moves no offset by more than
     ``xtol`` (metres) without raising the cost: a fixed point of the alternation, i.e. a
     stationary point of the joint problem. A last sweep then fits the poses to the final
-    offsets.
-
-    Alternating the two converges linearly and slowly along directions that couple
-    poses and offsets (a bone's length against the poses of its two segments). The updates
-    are therefore Anderson-accelerated (:mod:`jaxskel._math.anderson`, the last
-    ``_ANDERSON_MEMORY`` + 1 pairs), restarted whenever the cost rose. Returns the offsets, the
-    last sweep's solution, the cost history (mean weighted squared residual after each
-    update), the largest offset move of each update (m) and whether ``xtol`` was met.
+    offsets. The updates are Anderson-accelerated (the last ``_ANDERSON_MEMORY`` + 1
+    pairs), restarted whenever the cost rose. Returns the offsets, the last sweep's
+    solution, the cost history (mean weighted squared residual after each update), the
+    largest offset move of each update (m) and whether ``xtol`` was met.
     """
     n_m = marker_theta.shape[0]
     parent = kinematic_chain(np.asarray(edges)).parent
-    # The IK's shapes (solver_shape): the refinement and the final IK share one compile.
+    # The IK's shapes (solver_shape): the refinement and the final IK share one layout.
     slots, columns = solver_shape(obs_segment[:n_m], edges, n_m)
     pad = ((0, 0), (0, columns - obs.shape[1]))
-    obs_in, observed = np.pad(obs, (*pad, (0, 0))), np.pad(present > 0, pad)
-
-    def sweep(m_th, j_th, sol):
-        # A joint centre is observed at its child's proximal end (offset 0): the point
-        # the parent's joint offset j_th puts it at, one slot on the child.
-        model = batch_model(
-            edges, np.stack([j_th, np.zeros_like(j_th)], axis=1), np.concatenate([m_th, np.zeros_like(j_th)]),
-            obs_segment, obs_base_weight, slots=slots,
-        )
-        if sol is None:
-            return solve(model, obs_in, observed, None, None, None, prior_weight, max_steps=max_steps)
-        q = sol["rotations"]
-        return solve(
-            model, obs_in, observed, sol["root_position"], q, _host_relative(q, parent), prior_weight,
-            max_steps=max_steps,
-        )
-
-    m_th, j_th = marker_theta, joint_theta
-    sol = sweep(m_th, j_th, start)
-    history: list[float] = []
-    steps: list[float] = []
-    met = False
-    iterates: list[np.ndarray] = []
-    images: list[np.ndarray] = []
-    if refine:  # the offset system's fixed inputs, on the device once
-        args = tuple(to_device(a) for a in (obs, present * obs_base_weight, coef, unknown_segment,
-                                            *_offset_pairs(coef, unknown_segment)))
-    while refine and len(history) < max_sweeps and not met:
-        theta_old = np.concatenate([m_th, j_th]).reshape(-1)
-        theta, cost = _program_cache.call(
-            _offset_update, to_device(sol["rotations"]), to_device(sol["root_position"]), *args, to_device(theta_old)
-        )
-        cost = float(cost)
-        theta = np.asarray(theta).reshape(-1)
-        step = float(np.max(np.abs(theta - theta_old)))
-        rose = bool(history) and cost > history[-1]
-        met = bool(history) and not rose and step <= xtol
-        if rose:  # the last extrapolation overshot: start the acceleration afresh
-            iterates, images = [], []
-        history.append(cost)
-        steps.append(step)
-        iterates = [*iterates, theta_old][-(_ANDERSON_MEMORY + 1):]
-        images = [*images, theta][-(_ANDERSON_MEMORY + 1):]
-        if not met:
-            theta = anderson_step(iterates, images)
-        theta = theta.reshape(-1, 3)
-        m_th, j_th = theta[:n_m], theta[n_m:]
-        sol = sweep(m_th, j_th, sol)
-    return m_th, j_th, sol, history, steps, met
+    # The layout of the offsets (slots, weights, tree): a joint centre is observed at its
+    # child's proximal end (offset 0), one slot on the child.
+    model = batch_model(
+        edges, np.stack([joint_theta, np.zeros_like(joint_theta)], axis=1),
+        np.concatenate([marker_theta, np.zeros_like(joint_theta)]), obs_segment, obs_base_weight, slots=slots,
+    )
+    pairs, pair_index = offset_pairs(coef, unknown_segment)
+    problem = SweepProblem(
+        model=model, obs_in=to_device(np.pad(obs, (*pad, (0, 0)))), observed=to_device(np.pad(present > 0, pad)),
+        prior_weight=to_device(prior_weight), parent=to_device(np.asarray(parent), np.int32),
+        max_steps=to_device(max_steps, np.int32), xtol=to_device(float(xtol)), obs=to_device(obs),
+        weight=to_device(present * obs_base_weight), coef=to_device(coef),
+        unknown_segment=to_device(unknown_segment, np.int32), pairs=to_device(pairs, np.int32),
+        pair_index=to_device(pair_index, np.int32),
+    )
+    n_frames, n_seg = obs.shape[0], edges.shape[0] + 1
+    if start is None:
+        t0, q0 = np.zeros((n_frames, 3)), np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), (n_frames, n_seg, 4))
+    else:
+        t0, q0 = start["root_position"], start["rotations"]
+    out = _program_cache.call(
+        alternate, problem, to_device(np.concatenate([marker_theta, joint_theta])), to_device(t0), to_device(q0),
+        to_device(start is None, bool), to_device(bool(refine), bool), max_sweeps=int(max_sweeps),
+        memory=_ANDERSON_MEMORY,
+    )
+    n_sweeps = int(out.sweeps)
+    theta = np.asarray(out.theta)
+    sol = {key: np.asarray(getattr(out, key)) for key in ("root_position", "rotations", "num_steps", "done", "rms")}
+    history = np.asarray(out.cost_history)[:n_sweeps].tolist()
+    steps = np.asarray(out.offset_steps)[:n_sweeps].tolist()
+    return theta[:n_m], theta[n_m:], sol, history, steps, bool(out.met)
 
 
 # ------------------------------------------------------------------- fit_rigid
