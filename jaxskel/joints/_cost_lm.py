@@ -47,9 +47,8 @@ monotonically.
 The iteration is :class:`jaxskel._math.lm.LevenbergMarquardt` (named state, Nielsen's
 damping policy, result codes) around :class:`PairLM`'s proposal, which owns the
 per-frame damping (:class:`FrameDamping`) and the reseeding. The (F, K) quantities are
-coordinate planes with frames on the major axis: on XLA:CPU this layout measured faster
-per step than (K, F) with frame sums as elementwise reductions, by up to 3x at 14,400
-frames (its reductions over the 8 markers stay in registers).
+coordinate planes with frames on the major axis, so the per-frame sums over the few
+markers are short minor-axis reductions.
 
 The step counts and costs behind these choices (on a synthetic hip) are in
 docs/bench/evidence_from_docstrings.md.
