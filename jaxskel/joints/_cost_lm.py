@@ -44,13 +44,17 @@ of time order the candidates are merely never taken. Every
 choice is per frame at the same trial radii, so the cost still decreases
 monotonically.
 
+The iteration is :class:`jaxskel._math.lm.LevenbergMarquardt` (named state, Nielsen's
+damping policy, result codes) around :class:`PairLM`'s proposal, which owns the
+per-frame damping (:class:`FrameDamping`) and the reseeding. The (F, K) quantities are
+coordinate planes with frames on the major axis, so the per-frame sums over the few
+markers are short minor-axis reductions.
+
 The step counts and costs behind these choices (on a synthetic hip) are in
 docs/bench/evidence_from_docstrings.md.
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -59,14 +63,10 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._math.linalg import spd_solve
+from .._math.lm import LevenbergMarquardt, LMState, Proposal
 from .._math.planes import SYM, UPPER, sym_apply, sym_inverse
 
-__all__ = ["PairProblem", "block_solve", "levenberg_marquardt", "inv3"]
-
-# Per-frame damping: bumped to at least this when a frame's step is refused.
-_MU_BUMP = 1e-3
-# Global LM parameter above which no step can make progress: report divergence.
-_LAMBDA_MAX = 1e30
+__all__ = ["FrameDamping", "PairLM", "PairProblem", "block_solve", "levenberg_marquardt", "inv3"]
 
 
 def inv3(a: Float[Array, "*b 3 3"]) -> Float[Array, "*b 3 3"]:
@@ -241,15 +241,10 @@ class PairProblem(eqx.Module):
         return _sym_matrix(a6), jnp.stack(b, axis=1), c_diag, jnp.stack(g_c, axis=-1), g_r
 
 
-# Frame offsets from which a stuck frame may be reseeded (both directions, one offset per
-# step in turn). Spreading over 1, 4 and 16 frames crosses a bad run of n frames in
-# ~3n/32 steps instead of n/2.
-_RESEED_OFFSETS = (1, 4, 16)
-
-
-def _neighbour_candidates(m, beta) -> list[Callable]:
-    """Candidate makers for o = +1, -1, +4, -4, +16, -16: ``candidate(c) = roll(c, o) + shift``
-    offers frame f the joint of frame f - o (``m``, ``c``: coordinate planes).
+def _neighbour_shifts(m, beta, offsets) -> Float[Array, "n 3 F"]:
+    """Shifts (n, 3, F) of the candidates ``roll(c, o) + shift`` for the signed offsets
+    o = +o1, -o1, +o2, -o2, ...: the candidate offers frame f the joint of frame f - o
+    (``m``: coordinate planes (F, K)).
 
     The shift is the mean displacement of the markers present in both frames, so the
     candidate follows the body. Frames without such a neighbour (edges, no shared
@@ -258,35 +253,135 @@ def _neighbour_candidates(m, beta) -> list[Callable]:
     present = (beta > 0).astype(beta.dtype)
     frames = beta.shape[0]
     index = jnp.arange(frames)
-    candidates = []
-    for offset in _RESEED_OFFSETS:
+    shifts = []
+    for offset in offsets:
         for signed in (offset, -offset):
             shared = present * jnp.roll(present, signed, axis=0)
             count = jnp.maximum(jnp.sum(shared, axis=1), 1.0)
             source = index - signed
             usable = (jnp.sum(shared, axis=1) > 0) & (source >= 0) & (source < frames)
-            shift = tuple(
+            shifts.append(jnp.stack([
                 jnp.where(usable, jnp.sum(shared * (mi - jnp.roll(mi, signed, axis=0)), axis=1) / count, 1e3)
                 for mi in m
-            )
-
-            def candidate(c, signed=signed, shift=shift):
-                return tuple(jnp.roll(ci, signed, axis=0) + si for ci, si in zip(c, shift))
-
-            candidates.append(candidate)
-    return candidates
+            ]))
+    return jnp.stack(shifts)
 
 
-class _LMState(eqx.Module):
-    c: tuple  # 3 x (F,)
-    r: Float[Array, " K"]
-    cost: Float[Array, ""]
-    lam: Float[Array, ""]
-    nu: Float[Array, ""]
-    mu: Float[Array, " F"]
-    steps: Int[Array, ""]
-    done: Bool[Array, ""]
-    failed: Bool[Array, ""]
+class FrameDamping(eqx.Module):
+    """Per-frame damping ``mu_f`` added to the global ``lambda`` on each frame's block.
+
+    A frame whose step is refused gets ``max(grow mu, bump)``; one whose step is taken
+    ``mu / shrink``; values below ``zero_below`` drop to 0. A non-finite trial leaves mu
+    as it was. The Marquardt scaling by the diagonal is floored at ``floor`` times the
+    largest diagonal entry, so flat directions stay damped.
+    """
+
+    bump: float = 1e-3
+    grow: float = 4.0
+    shrink: float = 3.0
+    zero_below: float = 1e-8
+    floor: float = 1e-12
+
+    def update(self, mu, take, finite):
+        new = jnp.where(take, mu / self.shrink, jnp.maximum(self.grow * mu, self.bump))
+        return jnp.where(finite, jnp.where(new < self.zero_below, 0.0, new), mu)
+
+
+class PairLM(eqx.Module):
+    """The pair problem's proposal for :class:`jaxskel._math.lm.LevenbergMarquardt`
+    (module docstring): the Schur block-arrow step with per-frame damping, per-frame
+    accept, and reseeding from the frames ``reseed_offsets`` before and after (one
+    distance per step in turn, both directions).
+
+    ``m`` (3 x (F, K)), ``beta`` (F, K), ``alpha``: the problem in planes; ``shifts``: the
+    reseeding shifts (:func:`_neighbour_shifts`, computed once per solve by :meth:`of`).
+    The solver's ``params`` are ``(c, r)`` (three (F,) planes, (K,)); ``aux`` is ``mu`` (F,).
+    """
+
+    m: tuple
+    beta: Float[Array, "F K"]
+    alpha: Float[Array, ""]
+    shifts: Float[Array, "n 3 F"]
+    frame_damping: FrameDamping = FrameDamping()
+    reseed_offsets: tuple[int, ...] = eqx.field(static=True, default=(1, 4, 16))
+
+    @classmethod
+    def of(cls, problem: PairProblem, *, reseed_offsets: tuple[int, ...] = (1, 4, 16), **kw) -> PairLM:
+        m = _planes(problem.markers)
+        shifts = _neighbour_shifts(m, problem.beta, reseed_offsets)
+        return cls(m, problem.beta, problem.alpha, shifts, reseed_offsets=reseed_offsets, **kw)
+
+    def frame_costs(self, c, r) -> Float[Array, " F"]:
+        return _frame_costs(self.m, self.beta, self.alpha, c, r)
+
+    def init(self, solver: LevenbergMarquardt, c, r) -> LMState:
+        """State at (c, r) (planes); nothing to fit when no frame has three markers."""
+        frames = self.beta.shape[0]
+        return solver.init(
+            (c, r), jnp.sum(self.frame_costs(c, r)), jnp.zeros(frames, self.beta.dtype),
+            done=~jnp.any(self.beta > 0),
+        )
+
+    def __call__(self, s: LMState) -> Proposal:
+        (c, r), mu = s.params, s.aux
+        hi = jax.lax.Precision.HIGHEST
+        tiny = jnp.finfo(self.beta.dtype).tiny
+        a6, b, c_diag, g_c, g_r = _blocks(self.m, self.beta, self.alpha, c, r, "positive")
+        a_diag = (a6[0], a6[3], a6[5])
+        # Marquardt scaling by the diagonal, floored so flat directions stay damped
+        floor = self.frame_damping.floor * jnp.maximum(jnp.max(jnp.stack([jnp.max(x) for x in a_diag])), tiny)
+        damping = s.lam + mu
+        a_damped = list(a6)
+        for k, diag in zip((0, 3, 5), a_diag):
+            a_damped[k] = diag + damping * jnp.maximum(diag, floor)
+        c_damped = c_diag * (1.0 + s.lam)
+        dc, dr = _block_solve(tuple(a_damped), b, c_damped, tuple(-g for g in g_c), -g_r)
+        model_c = tuple(ai + jnp.dot(bi, dr, precision=hi) for ai, bi in zip(_sym_apply(a6, dc), b))
+        model_r = sum(jnp.dot(di, bi, precision=hi) for di, bi in zip(dc, b)) + c_diag * dr
+        predicted = -(sum(jnp.sum(g * d) for g, d in zip(g_c, dc)) + jnp.sum(g_r * dr)) - 0.5 * (
+            sum(jnp.sum(d * mc) for d, mc in zip(dc, model_c)) + jnp.sum(dr * model_r)
+        )
+
+        r_trial = r + dr
+        stepped = tuple(ci + di for ci, di in zip(c, dc))
+        moved = self.frame_costs(stepped, r_trial)
+        kept = self.frame_costs(c, r_trial)
+        take = moved <= kept
+        c_trial = tuple(jnp.where(take, x, y) for x, y in zip(stepped, c))
+        c_trial, cost_frames = self._reseed(c, r_trial, c_trial, jnp.minimum(moved, kept), s.steps)
+        cost_trial = jnp.sum(cost_frames)
+
+        finite = jnp.isfinite(cost_trial) & jnp.all(jnp.isfinite(dr))
+        for d in dc:
+            finite = finite & jnp.all(jnp.isfinite(d))
+        step = jnp.max(jnp.abs(dr))
+        for ct, ci in zip(c_trial, c):
+            step = jnp.maximum(step, jnp.max(jnp.abs(ct - ci)))
+        return Proposal(
+            params=(c_trial, r_trial), cost=cost_trial, predicted=predicted, step=step, finite=finite,
+            aux=self.frame_damping.update(mu, take, finite),
+        )
+
+    def _reseed(self, c, r_trial, c_trial, cost_frames, steps):
+        """Offer every frame a neighbour's joint (module docstring) and keep the cheapest:
+        one distance per step in turn, both directions, so a step evaluates two candidates
+        rather than ``2 len(reseed_offsets)`` (the frame costs dominate a step)."""
+        turn = steps % len(self.reseed_offsets)
+        for direction in (0, 1):
+
+            def candidate_at(k, direction=direction):
+                signed = self.reseed_offsets[k] * (1 if direction == 0 else -1)
+                shift = self.shifts[2 * k + direction]
+                return tuple(jnp.roll(ci, signed, axis=0) + shift[i] for i, ci in enumerate(c))
+
+            candidate = candidate_at(0)
+            for k in range(1, len(self.reseed_offsets)):
+                candidate = tuple(jnp.where(turn == k, x, y) for x, y in zip(candidate_at(k), candidate))
+            candidate_cost = self.frame_costs(candidate, r_trial)
+            better = candidate_cost < cost_frames
+            c_trial = tuple(jnp.where(better, x, y) for x, y in zip(candidate, c_trial))
+            cost_frames = jnp.where(better, candidate_cost, cost_frames)
+        return c_trial, cost_frames
 
 
 def levenberg_marquardt(
@@ -305,102 +400,8 @@ def levenberg_marquardt(
     The controls may be traced, so changing them does not recompile. The iteration
     works on coordinate planes (see the planar kernels above).
     """
-    dtype = c0.dtype
-    tiny = jnp.finfo(dtype).tiny
-    m, beta, alpha = _planes(problem.markers), problem.beta, problem.alpha
-    neighbour_candidates = _neighbour_candidates(m, beta)
-    hi = jax.lax.Precision.HIGHEST
-
-    def frame_costs(c, r):
-        return _frame_costs(m, beta, alpha, c, r)
-
-    def body(s: _LMState) -> _LMState:
-        a6, b, c_diag, g_c, g_r = _blocks(m, beta, alpha, s.c, s.r, "positive")
-        a_diag = (a6[0], a6[3], a6[5])
-        # Marquardt scaling by the diagonal, floored so flat directions stay damped
-        floor = 1e-12 * jnp.maximum(jnp.max(jnp.stack([jnp.max(x) for x in a_diag])), tiny)
-        damping = s.lam + s.mu
-        a_damped = list(a6)
-        for k, diag in zip((0, 3, 5), a_diag):
-            a_damped[k] = diag + damping * jnp.maximum(diag, floor)
-        c_damped = c_diag * (1.0 + s.lam)
-        dc, dr = _block_solve(tuple(a_damped), b, c_damped, tuple(-g for g in g_c), -g_r)
-        model_c = tuple(ai + jnp.dot(bi, dr, precision=hi) for ai, bi in zip(_sym_apply(a6, dc), b))
-        model_r = sum(jnp.dot(di, bi, precision=hi) for di, bi in zip(dc, b)) + c_diag * dr
-        predicted = -(sum(jnp.sum(g * d) for g, d in zip(g_c, dc)) + jnp.sum(g_r * dr)) - 0.5 * (
-            sum(jnp.sum(d * mc) for d, mc in zip(dc, model_c)) + jnp.sum(dr * model_r)
-        )
-
-        r_trial = s.r + dr
-        stepped = tuple(ci + di for ci, di in zip(s.c, dc))
-        moved = frame_costs(stepped, r_trial)
-        kept = frame_costs(s.c, r_trial)
-        take = moved <= kept
-        c_trial = tuple(jnp.where(take, a, b_) for a, b_ in zip(stepped, s.c))
-        cost_frames = jnp.minimum(moved, kept)
-        # A frame stuck on a wrong branch (mirror image) is reseeded from a neighbour:
-        # one distance (1, 4, 16 frames) per step in turn, both directions, so a step
-        # evaluates two candidates rather than six (the frame costs dominate a step).
-        turn = s.steps % len(_RESEED_OFFSETS)
-        for direction in (0, 1):
-            options = neighbour_candidates[direction::2]
-            candidate = options[0](s.c)
-            for k, make in enumerate(options[1:], start=1):
-                candidate = tuple(jnp.where(turn == k, a, b_) for a, b_ in zip(make(s.c), candidate))
-            candidate_cost = frame_costs(candidate, r_trial)
-            better = candidate_cost < cost_frames
-            c_trial = tuple(jnp.where(better, a, b_) for a, b_ in zip(candidate, c_trial))
-            cost_frames = jnp.where(better, candidate_cost, cost_frames)
-        cost_trial = jnp.sum(cost_frames)
-
-        finite = jnp.isfinite(cost_trial) & jnp.all(jnp.isfinite(dr))
-        for d in dc:
-            finite = finite & jnp.all(jnp.isfinite(d))
-        actual = s.cost - cost_trial
-        accept = finite & (actual > 0)
-        rho = actual / jnp.where(predicted > 0, predicted, 1.0)
-        # Nielsen's update of the LM parameter
-        lam = jnp.where(accept, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu)
-        nu = jnp.where(accept, 2.0, 2.0 * s.nu).astype(dtype)
-        mu = jnp.where(take, s.mu / 3.0, jnp.maximum(4.0 * s.mu, _MU_BUMP))
-        mu = jnp.where(finite, jnp.where(mu < 1e-8, 0.0, mu), s.mu)
-
-        step = jnp.max(jnp.abs(dr))
-        for ct, ci in zip(c_trial, s.c):
-            step = jnp.maximum(step, jnp.max(jnp.abs(ct - ci)))
-        flat = accept & (actual <= rtol * s.cost) & (predicted <= rtol * s.cost)
-        return _LMState(
-            c=tuple(jnp.where(accept, ct, ci) for ct, ci in zip(c_trial, s.c)),
-            r=jnp.where(accept, r_trial, s.r),
-            cost=jnp.where(accept, cost_trial, s.cost),
-            lam=lam,
-            nu=nu,
-            mu=mu,
-            steps=s.steps + 1,
-            done=(finite & (step <= atol)) | flat,
-            failed=lam > _LAMBDA_MAX,
-        )
-
-    def cond(s: _LMState):
-        return (~s.done) & (~s.failed) & (s.steps < max_steps)
-
-    c_start = _planes(c0)
-    init = _LMState(
-        c=c_start,
-        r=r0,
-        cost=jnp.sum(frame_costs(c_start, r0)),
-        lam=jnp.asarray(1e-3, dtype),
-        nu=jnp.asarray(2.0, dtype),
-        mu=jnp.zeros(c0.shape[0], dtype),
-        steps=jnp.asarray(0),
-        # nothing to fit: no frame has three markers
-        done=~jnp.any(problem.valid_frames),
-        failed=jnp.asarray(False),
-    )
-    final = jax.lax.while_loop(cond, body, init)
-    result = optx.RESULTS.where(
-        final.done,
-        optx.RESULTS.successful,
-        optx.RESULTS.where(final.failed, optx.RESULTS.nonlinear_divergence, optx.RESULTS.nonlinear_max_steps_reached),
-    )
-    return jnp.stack(final.c, axis=-1), final.r, final.steps, result
+    solver = LevenbergMarquardt(rtol=rtol, atol=atol, max_steps=max_steps)
+    pair = PairLM.of(problem)
+    final = solver.run(pair, pair.init(solver, _planes(c0), r0))
+    c, r = final.params
+    return jnp.stack(c, axis=-1), r, final.steps, solver.result(final)

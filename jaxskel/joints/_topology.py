@@ -70,11 +70,12 @@ MIN_PAIR_FRAMES = 10
 #: MST weights of the all-pairs pass (see :class:`PairCosts`).
 PAIR_WEIGHTS = ("normalized", "objective", "variance")
 #: Segment pairs solved per vmapped call in the all-pairs pass (accelerators; on CPU
-#: ``PAIR_CHUNK_CPU``: a vmapped while loop runs until its slowest pair stops, so
-#: narrower chunks waste less, until per-call overheads take over; timings by chunk
-#: size: docs/bench/evidence_from_docstrings.md).
+#: ``PAIR_CHUNK_CPU``: a vmapped while loop runs until its slowest pair stops and every
+#: step costs as much for a finished pair as for a running one, while one pair's frames
+#: already fill the SIMD lanes of a CPU; so on a CPU each pair is its own call and pays
+#: only its own steps).
 PAIR_CHUNK = 64
-PAIR_CHUNK_CPU = 8
+PAIR_CHUNK_CPU = 1
 #: Stopping tolerances of the full-frame (tree) pass in float64: a step that lowers the
 #: cost by at most ``TREE_RTOL`` relative (and whose model predicts no more), or moves
 #: nothing by more than ``TREE_ATOL`` metres, ends the solve. The solver's float64
@@ -426,7 +427,8 @@ def all_pairs_problem(
     pairs = np.asarray(candidates, dtype=int).reshape(-1, 2)
     kmax = max((int(sizes[a] + sizes[b]) for a, b in candidates), default=4)
     k_pad = bucket_size(kmax, minimum=4, steps_per_octave=1)
-    f_pad = bucket_size(len(frames))
+    # a subsample of exactly max_frames frames (the usual case) keeps its count: one shape, no padding
+    f_pad = len(frames) if len(frames) == max_frames else bucket_size(len(frames))
     xs, ms = pair_arrays(x, mask, seg, pairs, frames, k_pad, f_pad)
     return AllPairsProblem(
         n_segments=s, frames=frames, sizes=sizes, reasons=reasons, pairs=pairs, xs=xs, ms=ms,
