@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-__all__ = ["cholesky", "cholesky_unrolled", "spd_solve", "spd_solve_unrolled", "eigvalsh", "eigh", "eigh3", "generalised_eigvalsh"]
+__all__ = ["cholesky", "spd_solve", "eigvalsh", "eigh", "eigh3", "generalised_eigvalsh"]
 
 
 def cholesky(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
@@ -245,65 +245,3 @@ def eigh3(a: Float[Array, "... 3 3"]) -> tuple[Float[Array, "... 3"], Float[Arra
     # (acos near +-1); the quotients of the vectors do not.
     vals = jnp.einsum("...ji,...jk,...ki->...i", vecs, a, vecs)
     return jnp.where(flat[..., None], m[..., None], vals), jnp.where(flat[..., None, None], eye, vecs)
-
-
-# ------------------------------------------------------- small systems unrolled at trace time
-def cholesky_unrolled(a: Float[Array, "*b n n"]) -> Float[Array, "*b n n"]:
-    """Lower Cholesky factor of (batches of) small SPD matrices, unrolled at trace time.
-
-    The same recurrence as :func:`cholesky` (``L_jj = sqrt(a_jj - sum_k<j L_jk^2)``,
-    ``L_ij = (a_ij - sum_k<j L_ik L_jk) / L_jj``, non-positive pivots clamped), written
-    entry by entry over the static size ``n``: ``n (n + 1) / 2`` elementwise expressions
-    over the leading batch axes, no loop, so XLA fuses the whole factorisation with its
-    neighbours. For ``n`` up to a few dozen; beyond, :func:`cholesky`.
-    """
-    low = _cholesky_entries(jnp.asarray(a))
-    n = len(low)
-    zero = jnp.zeros_like(low[0][0])
-    return jnp.stack([jnp.stack([low[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)], -2)
-
-
-def _cholesky_entries(a):
-    """``L[i][j]`` (``j <= i``) of :func:`cholesky_unrolled` as nested lists of batch arrays."""
-    n = a.shape[-1]
-    tiny = jnp.finfo(a.dtype).tiny ** 0.5
-    low: list[list] = [[None] * n for _ in range(n)]
-    for j in range(n):
-        s = a[..., j, j]
-        for k in range(j):
-            s = s - low[j][k] * low[j][k]
-        pivot = jnp.sqrt(jnp.maximum(s, tiny))
-        low[j][j] = pivot
-        for i in range(j + 1, n):
-            s = a[..., i, j]
-            for k in range(j):
-                s = s - low[i][k] * low[j][k]
-            low[i][j] = s / pivot
-    return low
-
-
-def spd_solve_unrolled(a: Float[Array, "*b n n"], b: Float[Array, "*b n"]) -> Float[Array, "*b n"]:
-    """Solve ``a x = b`` for (batches of) small SPD ``a`` and vectors ``b``, unrolled at trace time.
-
-    :func:`cholesky_unrolled`, then ``L y = b`` (``y_i = (b_i - sum_k<i L_ik y_k) / L_ii``)
-    and ``L^T x = y`` (``x_i = (y_i - sum_k>i L_ki x_k) / L_ii``), each entry an
-    elementwise expression over the leading axes: no ``fori_loop``, no dot, no LAPACK.
-    Linear in ``b``; differentiable and vmappable.
-    """
-    a = jnp.asarray(a)
-    b = jnp.asarray(b, a.dtype)
-    low = _cholesky_entries(a)
-    n = len(low)
-    y: list = [None] * n
-    for i in range(n):
-        s = b[..., i]
-        for k in range(i):
-            s = s - low[i][k] * y[k]
-        y[i] = s / low[i][i]
-    x: list = [None] * n
-    for i in reversed(range(n)):
-        s = y[i]
-        for k in range(i + 1, n):
-            s = s - low[k][i] * x[k]
-        x[i] = s / low[i][i]
-    return jnp.stack(x, -1)

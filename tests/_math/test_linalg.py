@@ -160,20 +160,3 @@ def test_closed_form_eigh3_matches_lapack(spectrum):
         separated = np.minimum(above, below) > 1e-3 * size
         cos = np.abs(np.sum(vecs[..., k] * ref_vecs[..., k], -1))
         np.testing.assert_allclose(cos[separated], 1.0, atol=1e-9)
-
-
-
-def test_unrolled_cholesky_and_solve_match_numpy_batched_and_differentiable():
-    from jaxskel._math.linalg import cholesky_unrolled, spd_solve_unrolled
-
-    rng = np.random.default_rng(3)
-    for n in (1, 2, 5, 8):
-        a = np.stack([_spd(rng, n, 1e4) for _ in range(3)])
-        b = rng.normal(size=(3, n))
-        np.testing.assert_allclose(cholesky_unrolled(jnp.asarray(a)), np.linalg.cholesky(a), atol=1e-12)
-        x = jax.jit(spd_solve_unrolled)(jnp.asarray(a), jnp.asarray(b))
-        np.testing.assert_allclose(x, np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-8)
-    a0, b0 = _spd(rng, 4, 10.0), rng.normal(size=4)
-    grad = jax.grad(lambda bb: jnp.sum(spd_solve_unrolled(jnp.asarray(a0), bb) ** 2))(jnp.asarray(b0))
-    # d/db |A^-1 b|^2 = 2 A^-1 A^-1 b (A symmetric)
-    np.testing.assert_allclose(grad, 2 * np.linalg.solve(a0, np.linalg.solve(a0, b0)), rtol=1e-8)
