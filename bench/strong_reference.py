@@ -109,7 +109,7 @@ def jaxskel_work(result) -> dict:
     solved = [(a, b) for a in range(s) for b in range(a + 1, s) if pc.steps[a, b] > 0]
     kmax = max((int(sizes[a] + sizes[b]) for a, b in solved), default=4)
     k_pad = bucket_size(kmax, minimum=4, steps_per_octave=1)
-    f_pad = bucket_size(len(pc.frames))
+    f_pad = len(pc.frames) if len(pc.frames) == TOPOLOGY_FRAMES else bucket_size(len(pc.frames))  # as all_pairs_problem
     flops = special = useful = 0.0
     for lo in range(0, len(solved), PAIR_CHUNK_CPU):
         chunk = solved[lo : lo + PAIR_CHUNK_CPU]
