@@ -520,10 +520,11 @@ def test_frames_in_a_wrong_basin_are_solved_again(monkeypatch):
     assert worst_joint_error() < 0.01
 
 
-def test_rigid_refinement_and_ik_run_one_compiled_solver(monkeypatch):
-    # fit_rigid's sweeps (joint centres as extra observed points) and the IK of the fitted
-    # skeleton must call solve_chunk with one set of shapes: each distinct set is a new
-    # compilation of the whole solver (~6 s on two cores) in every new process.
+def test_rigid_refinement_and_ik_use_one_slot_layout(monkeypatch):
+    # fit_rigid's sweeps (joint centres as extra observed points, inside the refinement's
+    # device program) and the IK of the fitted skeleton must hand solve_chunk one set of
+    # shapes: the IK's reserved joint slot is what lets the final IK pose the skeleton in
+    # the layout the refinement fitted it in (and keeps the IK's own program to one shape).
     body = synth.full_body(seed=2)
     trial, truth = synth.simulate(body, "calibration", duration=3.0, seed=2, noise=NOISE)
     shapes = set()
