@@ -601,12 +601,12 @@ def _refine(
         to_device(start is None, bool), to_device(bool(refine), bool), max_sweeps=int(max_sweeps),
         memory=_ANDERSON_MEMORY,
     )
-    n_sweeps = int(out.sweeps)
-    theta = np.asarray(out.theta)
-    sol = {key: np.asarray(getattr(out, key)) for key in ("root_position", "rotations", "num_steps", "done", "rms")}
-    history = np.asarray(out.cost_history)[:n_sweeps].tolist()
-    steps = np.asarray(out.offset_steps)[:n_sweeps].tolist()
-    return theta[:n_m], theta[n_m:], sol, history, steps, bool(out.met)
+    n_sweeps = int(out["sweeps"])
+    theta = np.asarray(out["theta"])
+    sol = {key: np.asarray(out[key]) for key in ("root_position", "rotations", "num_steps", "done", "rms")}
+    history = np.asarray(out["cost_history"])[:n_sweeps].tolist()
+    steps = np.asarray(out["offset_steps"])[:n_sweeps].tolist()
+    return theta[:n_m], theta[n_m:], sol, history, steps, bool(out["met"])
 
 
 # ------------------------------------------------------------------- fit_rigid

@@ -22,11 +22,12 @@ the offsets returned.
 
 :func:`alternate` runs all of it, IK sweeps included, in one ``lax.while_loop``: no
 host round trip per sweep. The cost history, the offset steps and the sweep count come
-back in :class:`Alternation`, the loop's named state.
+back as the fields of :class:`Alternation`, the loop's named state.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -236,11 +237,15 @@ def alternate(
     max_sweeps: int,
     memory: int,
     chunk: int = 64,
-) -> Alternation:
+) -> dict[str, Array]:
     """A sweep from ``(t0, q0)`` (or the Horn start) with the offsets ``theta0``; with
     ``refine``, then the accelerated alternation until ``xtol`` or ``max_sweeps`` (module
     docstring), all in one program. ``memory``: pairs beyond the newest that the
-    acceleration combines."""
+    acceleration combines.
+
+    Returns the final :class:`Alternation`'s fields as a dict (field name -> array): a
+    container that :mod:`jax.export` serializes, so the program can be saved
+    (:func:`jaxskel._runtime.program_cache.call`)."""
     dtype = problem.obs.dtype
     sol = _sweep(problem, theta0, t0, q0, horn, chunk)
     n_theta = theta0.size
@@ -256,4 +261,5 @@ def alternate(
     def cond(s: Alternation):
         return refine & (s.sweeps < max_sweeps) & ~s.met
 
-    return jax.lax.while_loop(cond, functools.partial(_update, problem, chunk), state)
+    final = jax.lax.while_loop(cond, functools.partial(_update, problem, chunk), state)
+    return {field.name: getattr(final, field.name) for field in dataclasses.fields(final)}
