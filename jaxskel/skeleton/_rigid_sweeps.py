@@ -158,8 +158,9 @@ class Alternation(eqx.Module):
     report per frame (``root_position`` (F, 3), ``rotations`` (F, S, 4), ``num_steps``,
     ``done``, ``rms`` (F,)); ``cost_history`` and ``offset_steps`` (max_sweeps,): per
     update its mean cost (m^2) and largest offset move (m), valid up to ``sweeps``;
-    ``met``: the last update met ``xtol``; ``iterates``/``images`` (memory + 1, 3U) the
-    Anderson history (newest last, ``count`` rows valid).
+    ``met``: the last update met ``xtol``; ``swept``: a sweep has run;
+    ``iterates``/``images`` (memory + 1, 3U) the Anderson history (newest last, ``count``
+    rows valid).
     """
 
     theta: Float[Array, "U 3"]
@@ -172,6 +173,7 @@ class Alternation(eqx.Module):
     offset_steps: Float[Array, " H"]
     sweeps: Int[Array, ""]
     met: Bool[Array, ""]
+    swept: Bool[Array, ""]
     iterates: Float[Array, "A V"]
     images: Float[Array, "A V"]
     count: Int[Array, ""]
@@ -199,8 +201,9 @@ def _with_sweep(state: Alternation, theta, sol) -> Alternation:
     )
 
 
-def _update(problem: SweepProblem, chunk: int, state: Alternation) -> Alternation:
-    """One offset update, its bookkeeping and acceleration, then a sweep."""
+def _update(problem: SweepProblem, state: Alternation) -> tuple[Array, Alternation]:
+    """One offset update and its bookkeeping and acceleration: the offsets to sweep with
+    next, and the state with this update's cost, step and Anderson history."""
     theta_old = state.theta.reshape(-1)
     theta, cost = offset_update(
         state.rotations, state.root_position, problem.obs, problem.weight, problem.coef,
@@ -216,13 +219,24 @@ def _update(problem: SweepProblem, chunk: int, state: Alternation) -> Alternatio
     iterates = jnp.roll(state.iterates, -1, axis=0).at[-1].set(theta_old)
     images = jnp.roll(state.images, -1, axis=0).at[-1].set(theta)
     theta_next = jnp.where(met, theta, anderson_step_buffered(iterates, images, count)).reshape(-1, 3)
-    sol = _sweep(problem, theta_next, state.root_position, state.rotations, jnp.asarray(False), chunk)
     state = eqx.tree_at(
         lambda s: (s.cost_history, s.offset_steps, s.sweeps, s.met, s.iterates, s.images, s.count), state,
         (state.cost_history.at[k].set(cost), state.offset_steps.at[k].set(step), k + 1, met, iterates, images,
          count),
     )
-    return _with_sweep(state, theta_next, sol)
+    return theta_next, state
+
+
+def _iteration(problem: SweepProblem, chunk: int, horn: Array, state: Alternation) -> Alternation:
+    """The loop body: the first pass sweeps with the starting offsets (from the starting
+    poses or, with ``horn``, the Horn start); every later one updates the offsets first.
+    One IK call site, so the program holds one copy of the IK solver."""
+    first = ~state.swept
+    theta_next, state = jax.lax.cond(
+        first, lambda s: (s.theta, s), functools.partial(_update, problem), state
+    )
+    sol = _sweep(problem, theta_next, state.root_position, state.rotations, horn & first, chunk)
+    return _with_sweep(eqx.tree_at(lambda s: s.swept, state, jnp.asarray(True)), theta_next, sol)
 
 
 @functools.partial(jax.jit, static_argnames=("max_sweeps", "memory", "chunk"))
@@ -247,19 +261,19 @@ def alternate(
     container that :mod:`jax.export` serializes, so the program can be saved
     (:func:`jaxskel._runtime.program_cache.call`)."""
     dtype = problem.obs.dtype
-    sol = _sweep(problem, theta0, t0, q0, horn, chunk)
+    n_frames = t0.shape[0]
     n_theta = theta0.size
     state = Alternation(
-        theta=theta0, root_position=sol["root_position"], rotations=sol["rotations"],
-        num_steps=sol["num_steps"], done=sol["done"], rms=sol["rms"],
+        theta=theta0.astype(dtype), root_position=t0.astype(dtype), rotations=q0.astype(dtype),
+        num_steps=jnp.zeros(n_frames, jnp.int32), done=jnp.zeros(n_frames, bool), rms=jnp.zeros(n_frames, dtype),
         cost_history=jnp.zeros(max_sweeps, dtype), offset_steps=jnp.zeros(max_sweeps, dtype),
-        sweeps=jnp.asarray(0, jnp.int32), met=jnp.asarray(False),
+        sweeps=jnp.asarray(0, jnp.int32), met=jnp.asarray(False), swept=jnp.asarray(False),
         iterates=jnp.zeros((memory + 1, n_theta), dtype), images=jnp.zeros((memory + 1, n_theta), dtype),
         count=jnp.asarray(0, jnp.int32),
     )
 
     def cond(s: Alternation):
-        return refine & (s.sweeps < max_sweeps) & ~s.met
+        return ~s.swept | (refine & (s.sweeps < max_sweeps) & ~s.met)
 
-    final = jax.lax.while_loop(cond, functools.partial(_update, problem, chunk), state)
+    final = jax.lax.while_loop(cond, functools.partial(_iteration, problem, chunk, horn), state)
     return {field.name: getattr(final, field.name) for field in dataclasses.fields(final)}
