@@ -84,6 +84,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._errors import ConvergenceWarning, InputError
+from .._math.lm import AcceptedSmall, LevenbergMarquardt, LMState, NielsenDamping, Proposal
 from .._math.padding import bucket_size
 from .._math.rotation import (
     axis_angle_to_quat,
@@ -455,6 +456,51 @@ def _normal_equations(t_root, q, x, w, model, prior, prior_weight):
     return energy, jnp.concatenate([top, bottom], axis=0), jnp.concatenate([g_t, g_w.reshape(-1)])
 
 
+def ik_solver(
+    max_steps: Int[Array, ""] | int, energy_rtol: Float[Array, ""] | float, step_tol: Float[Array, ""] | float
+) -> LevenbergMarquardt:
+    """The Levenberg-Marquardt of both IKs (:func:`solve_frame` and
+    :mod:`jaxskel.skeleton._ik_batch`): Nielsen's damping update on the gain ratio
+    ``actual / max(predicted, 1e-300)``, ``mu`` starting at 1e-3 and never below 1e-15,
+    and :class:`jaxskel._math.lm.AcceptedSmall` stopping: an accepted step that lowers the
+    energy by at most ``energy_rtol E + 1e-24`` or moves every unknown by less than
+    ``step_tol`` ends the iteration, and so does ``mu > 1e12`` (no step can lower the
+    energy any more in floating point), as converged."""
+    damping = NielsenDamping(initial=1e-3, lam_max=1e12, lam_min=1e-15, predicted_floor=1e-300)
+    return LevenbergMarquardt(rtol=energy_rtol, atol=step_tol, max_steps=max_steps, damping=damping,
+                              stopping=AcceptedSmall(drop_floor=1e-24))
+
+
+class FrameStep(eqx.Module):
+    """:func:`solve_frame`'s proposal for :class:`jaxskel._math.lm.LevenbergMarquardt`:
+    ``params`` ``(t_root, q)``, no ``aux``; the trial solves ``(H + mu (diag(H) + 1e-12))
+    delta = -g`` (``mu = state.lam``) by Cholesky and predicts the decrease
+    ``-(2 g.delta + delta^T H delta)`` of the energy."""
+
+    x: Float[Array, "M 3"]
+    w: Float[Array, " M"]
+    model: IKModel
+    prior: Float[Array, "S 4"]
+    prior_weight: Float[Array, " S"]
+
+    def energy(self, t, q) -> Float[Array, ""]:
+        return _energy_terms(t, q, self.x, self.w, self.model, self.prior, self.prior_weight)[0]
+
+    def __call__(self, s: LMState) -> Proposal:
+        t, q = s.params
+        _, h, g = _normal_equations(t, q, self.x, self.w, self.model, self.prior, self.prior_weight)
+        eye = jnp.eye(h.shape[0], dtype=h.dtype)
+        damped = h + s.lam * (jnp.diag(jnp.diag(h)) + 1e-12 * eye)
+        delta = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(damped, lower=True), g)
+        t_new = t + delta[:3]
+        q_new = quat_normalize(quat_multiply(axis_angle_to_quat(delta[3:].reshape(-1, 3)), q))
+        energy_new = self.energy(t_new, q_new)
+        # Gain ratio: actual over predicted decrease of E ~ E + 2 g.d + d^T H d.
+        predicted = -(2.0 * g @ delta + delta @ h @ delta)
+        return Proposal(params=(t_new, q_new), cost=energy_new, predicted=predicted,
+                        step=jnp.max(jnp.abs(delta)), finite=jnp.isfinite(energy_new), aux=())
+
+
 def solve_frame(
     x: Float[Array, "M 3"],
     mask: Bool[Array, " M"],
@@ -475,53 +521,22 @@ def solve_frame(
     from the ratio of actual to predicted decrease, and stops once an accepted step lowers the energy by less than
     ``energy_rtol`` relative or moves every unknown by less than ``step_tol`` (metres /
     radians), or once the damping has grown past any useful step (the energy cannot
-    drop any more in floating point). The energy test matters: with noisy markers
-    Gauss-Newton converges only linearly in directions the markers barely determine
-    (the twist of a two-marker segment), where further steps change no marker by
-    more than a nanometre. vmap over frames.
+    drop any more in floating point): :func:`ik_solver` around :class:`FrameStep`. The
+    energy test matters: with noisy markers Gauss-Newton converges only linearly in
+    directions the markers barely determine (the twist of a two-marker segment), where
+    further steps change no marker by more than a nanometre. vmap over frames.
     """
     dtype = x.dtype
     w = mask.astype(dtype) * model.marker_weight
-    n = 3 + 3 * init_rotations.shape[0]
-    eye = jnp.eye(n, dtype=dtype)
-
-    def step(carry):
-        t, q, mu, nu, it, _ = carry
-        energy, h, g = _normal_equations(t, q, x, w, model, prior_rotations, prior_weight)
-        damped = h + mu * (jnp.diag(jnp.diag(h)) + 1e-12 * eye)
-        delta = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(damped, lower=True), g)
-        t_new = t + delta[:3]
-        q_new = quat_normalize(quat_multiply(axis_angle_to_quat(delta[3:].reshape(-1, 3)), q))
-        energy_new = _energy_terms(t_new, q_new, x, w, model, prior_rotations, prior_weight)[0]
-        # Gain ratio: actual over predicted decrease of E ~ E + 2 g.d + d^T H d.
-        predicted = -(2.0 * g @ delta + delta @ h @ delta)
-        gain = (energy - energy_new) / jnp.maximum(predicted, 1e-300)
-        accept = energy_new < energy
-        small = (jnp.max(jnp.abs(delta)) < step_tol) | (energy - energy_new <= energy_rtol * energy + 1e-24)
-        t = jnp.where(accept, t_new, t)
-        q = jnp.where(accept, q_new, q)
-        # Nielsen's damping update: shrink smoothly with the gain, grow geometrically on rejection.
-        mu = jnp.where(accept, mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), mu * nu)
-        nu = jnp.where(accept, 2.0, 2.0 * nu)
-        done = (accept & small) | (mu > 1e12)
-        return t, q, jnp.maximum(mu, 1e-15), nu, it + 1, done
-
-    def keep_going(carry):
-        return (~carry[5]) & (carry[4] < max_steps)
-
-    init = (
-        init_root.astype(dtype),
-        quat_normalize(init_rotations.astype(dtype)),
-        jnp.asarray(1e-3, dtype),
-        jnp.asarray(2.0, dtype),
-        jnp.asarray(0, jnp.int32),
-        jnp.asarray(False),
-    )
-    t, q, _, _, steps, done = jax.lax.while_loop(keep_going, step, init)
+    problem = FrameStep(x, w, model, prior_rotations, prior_weight)
+    solver = ik_solver(max_steps, energy_rtol, step_tol)
+    t0, q0 = init_root.astype(dtype), quat_normalize(init_rotations.astype(dtype))
+    final = solver.run(problem, solver.init((t0, q0), problem.energy(t0, q0)))
+    t, q = final.params
     energy, rot, trans, joints, pred, err, _ = _energy_terms(t, q, x, w, model, prior_rotations, prior_weight)
     rms = jnp.sqrt(jnp.sum(w * jnp.sum(err * err, -1)) / jnp.maximum(jnp.sum(w), 1.0))
-    result = jnp.where(done, RESULT_SUCCESSFUL, RESULT_MAX_STEPS).astype(jnp.int32)
-    return FrameSolution(root_position=t, rotations=q, num_steps=steps, result=result, rms=rms)
+    result = jnp.where(final.done, RESULT_SUCCESSFUL, RESULT_MAX_STEPS).astype(jnp.int32)
+    return FrameSolution(root_position=t, rotations=q, num_steps=final.steps, result=result, rms=rms)
 
 
 def ik_initial_guess(

@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._math.lm import Decision, LMState, Proposal
 from .._math.padding import bucket_size
 from .._math.planes import (
     UPPER,
@@ -86,6 +87,7 @@ from .._math.rotation_planes import (
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import to_device
 from .._runtime.precision import float64_scope
+from ._ik import ik_solver
 
 __all__ = ["BatchModel", "TreePlan", "batch_model", "solve", "solve_chunk", "solve_frames", "solver_shape", "with_offsets"]
 
@@ -96,15 +98,6 @@ HORN_SQUARINGS = 10
 #: Horn passes of the start (capped by the tree depth): the first aligns each segment on
 #: its markers, each later one adds the proximal joint placed by the parent.
 HORN_PASSES = 3
-#: A Newton step (every step after the first) that lowers the energy by less than this
-#: fraction ends the iteration: quadratic convergence leaves an error of about its square.
-NEWTON_RTOL = 1e-5
-#: A step is followed by a Newton step only if its gain ratio (actual over predicted
-#: decrease) is within NEWTON_GAIN of 1 from below (and as far above): far from the
-#: optimum the residual curvature can be indefinite and lead into a wrong basin.
-NEWTON_GAIN = 0.75
-#: ... and only if it lowered the energy by less than this fraction.
-NEWTON_DROP = 0.5
 
 
 # ------------------------------------------------------------------ the tree plan
@@ -612,61 +605,71 @@ class BatchSolution(eqx.Module):
     evaluation: Evaluation
 
 
-def _lm(model, x, w, lam2, t0, q0, prior, max_steps, energy_rtol, step_tol):
-    dtype = x[0].dtype
-    batch = x[0].shape[-1]
-    ev0 = _evaluate(model, x, w, t0, q0, prior, lam2)
-    state0 = (
-        t0,
-        q0,
-        ev0,
-        jnp.full((batch,), 1e-3, dtype),
-        jnp.full((batch,), 2.0, dtype),
-        jnp.zeros((batch,), jnp.int32),
-        ev0.energy <= 1e-30,  # nothing to fit (no markers, prior met): done
-        jnp.zeros((batch,), bool),
-        jnp.asarray(0, jnp.int32),
-    )
+class NewtonSwitch(eqx.Module):
+    """When the batched IK takes Newton steps, and when a Newton step ends it.
 
-    def cond(state):
-        return (state[8] < max_steps) & ~jnp.all(state[6])
+    A step is followed by a Newton step (the residual curvature added) only if it was
+    accepted, its gain ratio lies in ``gain < rho < 2 - gain`` and
+    it lowered the energy by less than the fraction ``drop``: far from the optimum the
+    residual curvature can be indefinite and lead into a wrong basin, so the first step
+    is Gauss-Newton. An accepted Newton step ends the iteration when it lowered the
+    energy by at most the fraction ``rtol`` with ``rho > stop_gain`` and damping below
+    ``stop_lam``: quadratic convergence leaves an error of about its square.
+    """
 
-    def body(state):
-        t, q, ev, mu, nu, steps, done, newton_ok, it = state
-        newton = newton_ok.astype(dtype)
-        omega, vel, predicted = _step(model, ev, w, lam2, mu, newton)
+    rtol: float = 1e-5
+    gain: float = 0.75
+    drop: float = 0.5
+    stop_gain: float = 0.5
+    stop_lam: float = 1e-2
+
+
+class TreeStep(eqx.Module):
+    """The batched IK's proposal for :class:`jaxskel._math.lm.LevenbergMarquardt`: a
+    batch of frames (frames on the last axis of every leaf).
+
+    ``params`` are ``(t_root, q, evaluation)`` (the evaluation of the pose is accepted
+    with it), ``aux`` the per-frame Newton switch (:class:`NewtonSwitch`, set in
+    :meth:`settle` from the solver's decision); the step is :func:`_step`'s damped tree
+    solve with ``mu = state.lam``.
+    """
+
+    model: BatchModel
+    x: tuple
+    w: Float[Array, "S K B"]
+    lam2: Float[Array, "S 1"]
+    prior: tuple
+    newton: NewtonSwitch = NewtonSwitch()
+
+    def __call__(self, s: LMState) -> Proposal:
+        t, q, ev = s.params
+        omega, vel, predicted = _step(self.model, ev, self.w, self.lam2, s.lam, s.aux.astype(ev.energy.dtype))
         t_new = vadd(t, tuple(c[0] for c in vel))
         q_new = quat_normalize(quat_multiply(axis_angle_to_quat(omega), q))
-        ev_new = _evaluate(model, x, w, t_new, q_new, prior, lam2)
-        drop = ev.energy - ev_new.energy
-        ev_old_energy = ev.energy
-        gain = drop / jnp.maximum(predicted, 1e-300)
-        accept = (ev_new.energy < ev.energy) & ~done
-        step_max = jnp.max(jnp.maximum(jnp.maximum(jnp.abs(omega[0]), jnp.abs(omega[1])), jnp.abs(omega[2])), axis=0)
-        step_max = jnp.maximum(step_max, jnp.maximum(jnp.maximum(jnp.abs(vel[0][0]), jnp.abs(vel[1][0])), jnp.abs(vel[2][0])))
-        small = (step_max < step_tol) | (drop <= energy_rtol * ev.energy + 1e-24)
-        small = small | (newton_ok & (drop <= NEWTON_RTOL * ev.energy) & (gain > 0.5) & (mu < 1e-2))
+        ev_new = _evaluate(self.model, self.x, self.w, t_new, q_new, self.prior, self.lam2)
+        step = jnp.max(jnp.maximum(jnp.maximum(jnp.abs(omega[0]), jnp.abs(omega[1])), jnp.abs(omega[2])), axis=0)
+        step = jnp.maximum(step, jnp.maximum(jnp.maximum(jnp.abs(vel[0][0]), jnp.abs(vel[1][0])), jnp.abs(vel[2][0])))
+        return Proposal(params=(t_new, q_new, ev_new), cost=ev_new.energy, predicted=predicted, step=step,
+                        finite=jnp.isfinite(ev_new.energy), aux=s.aux)
 
-        def pick(new, old):
-            return jnp.where(accept, new, old)
+    def settle(self, s: LMState, trial: Proposal, d: Decision) -> Proposal:
+        nw, drop, rho = self.newton, d.actual, d.rho
+        converged = s.aux & (drop <= nw.rtol * s.cost) & (rho > nw.stop_gain) & (s.lam < nw.stop_lam)
+        newton_next = d.accept & (rho > nw.gain) & (rho < 2.0 - nw.gain) & (drop < nw.drop * s.cost)
+        return dataclasses.replace(trial, aux=newton_next, converged=converged)
 
-        t = jax.tree_util.tree_map(pick, t_new, t)
-        q = jax.tree_util.tree_map(pick, q_new, q)
-        ev = jax.tree_util.tree_map(pick, ev_new, ev)
-        mu_next = jnp.where(accept, mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), mu * nu)
-        nu_next = jnp.where(accept, 2.0, 2.0 * nu)
-        mu = jnp.where(done, mu, jnp.maximum(mu_next, 1e-15))
-        nu = jnp.where(done, nu, nu_next)
-        steps = steps + (~done).astype(jnp.int32)
-        done = done | (accept & small) | (mu > 1e12)
-        # Newton next only after a step the model predicted well (near the optimum).
-        newton_ok = accept & (gain > NEWTON_GAIN) & (gain < 2.0 - NEWTON_GAIN) & (drop < NEWTON_DROP * ev_old_energy)
-        return t, q, ev, mu, nu, steps, done, newton_ok, it + 1
 
-    t, q, ev, _, _, steps, done, _, _ = jax.lax.while_loop(cond, body, state0)
+def _lm(model, x, w, lam2, t0, q0, prior, max_steps, energy_rtol, step_tol):
+    ev0 = _evaluate(model, x, w, t0, q0, prior, lam2)
+    solver = ik_solver(max_steps, energy_rtol, step_tol)
+    problem = TreeStep(model, x, w, lam2, prior)
+    # nothing to fit (no markers, prior met): done at once
+    state = solver.init((t0, q0, ev0), ev0.energy, jnp.zeros(ev0.energy.shape, bool), done=ev0.energy <= 1e-30)
+    final = solver.run(problem, state)
+    t, q, ev = final.params
     wsum = jnp.maximum(jnp.sum(_sum_slots(w), axis=0), 1.0)
     rms = jnp.sqrt(jnp.sum(_sum_slots(w * vdot(ev.err, ev.err)), axis=0) / wsum)
-    return BatchSolution(root_position=t, rotations=q, num_steps=steps, done=done, rms=rms, evaluation=ev)
+    return BatchSolution(root_position=t, rotations=q, num_steps=final.steps, done=final.done, rms=rms, evaluation=ev)
 
 
 @functools.partial(jax.jit, static_argnames=("energy_rtol", "step_tol"))
