@@ -30,10 +30,14 @@ is organised for a CPU:
   term, so the second derivatives are block diagonal). It costs a few products per
   segment and converges quadratically; the first step, far from the optimum, stays
   Gauss-Newton.
-* **Levenberg-Marquardt control** as in :func:`jaxskel.skeleton._ik.solve_frame` (Nielsen's
-  damping update on the gain ratio); damping adds ``mu * |diag|`` to each eliminated
-  block, which changes the path, not the optimum.
-* **Batch-wide loop.** One ``while_loop`` per chunk of frames; converged frames are
+* **Levenberg-Marquardt control.** The iteration is :class:`jaxskel._math.lm.LevenbergMarquardt`
+  with the IK policies of :func:`jaxskel.skeleton._ik.ik_solver` (Nielsen's damping update
+  on the gain ratio, as :func:`jaxskel.skeleton._ik.solve_frame`) around :class:`TreeStep`'s
+  proposal; damping adds ``mu * |diag|`` to each eliminated block, which changes the
+  path, not the optimum. The Newton switch (:class:`NewtonSwitch`) is the proposal's
+  ``aux``, set from the solver's decision on each step.
+* **Batch-wide loop.** A chunk of frames is one batch state of the solver (per-frame
+  damping, step count and convergence) in one ``while_loop``; converged frames are
   frozen and the loop stops when all are done or after ``max_steps``.
 
 The tree shape is static (:class:`TreePlan`, hashable): one compilation per topology
