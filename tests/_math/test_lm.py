@@ -139,7 +139,8 @@ def test_a_batch_runs_each_member_as_its_own_scalar_run(stopping):
         # the same iterates; XLA may round a vectorised loop differently from a scalar one
         np.testing.assert_allclose(batch.params[:, b], one.params, rtol=1e-10, atol=1e-14)
         for name in ("cost", "lam"):
-            np.testing.assert_allclose(getattr(batch, name)[b], getattr(one, name), rtol=1e-10, atol=1e-30, err_msg=name)
+            np.testing.assert_allclose(getattr(batch, name)[b], getattr(one, name), rtol=1e-10, atol=1e-30,
+                                       err_msg=name)
         for name in ("nu", "steps", "done", "failed", "aux"):
             np.testing.assert_array_equal(getattr(batch, name)[b], getattr(one, name), err_msg=name)
     assert int(batch.steps[3]) == 0 and bool(batch.done[3])  # at the minimum: nothing to fit
@@ -203,13 +204,15 @@ def test_damping_floor_and_gain_policies():
     accept = jnp.asarray([True, True, False])
     rho = jnp.asarray([1.0, 1.0, 0.0])
     # rho = 1 divides by 3: 1e-14 / 3 stays above a 1e-15 floor, falls below a 1e-14 floor
-    np.testing.assert_allclose(NielsenDamping(lam_min=1e-15).update(lam, nu, accept, rho)[0], [1e-14 / 3, 1e-14 / 3, 2e-14])
+    np.testing.assert_allclose(NielsenDamping(lam_min=1e-15).update(lam, nu, accept, rho)[0],
+                               [1e-14 / 3, 1e-14 / 3, 2e-14])
     np.testing.assert_array_equal(NielsenDamping(lam_min=1e-14).update(lam, nu, accept, rho)[0], [1e-14, 1e-14, 2e-14])
     actual = jnp.asarray([1.0, 1.0, 1.0])
     predicted = jnp.asarray([2.0, 0.0, -1.0])
     # default: a non-positive prediction counts as 1; with a floor it is floored (rho huge)
     np.testing.assert_array_equal(NielsenDamping().gain(actual, predicted), [0.5, 1.0, 1.0])
-    np.testing.assert_allclose(NielsenDamping(predicted_floor=1e-300).gain(actual, predicted), [0.5, 1e300, 1e300], rtol=1e-15)
+    np.testing.assert_allclose(NielsenDamping(predicted_floor=1e-300).gain(actual, predicted), [0.5, 1e300, 1e300],
+                               rtol=1e-15)
 
 
 def test_settle_sees_the_decision_and_rewrites_aux_and_converged():
