@@ -69,9 +69,9 @@ on this object too: the batched IK (:mod:`jaxskel.skeleton._ik_batch`) is a batc
 frames (``params`` the root translation, the segment orientations and their evaluation,
 frames on the last axis; ``aux`` the Newton switch, set by ``settle``), and the
 one-frame IK (:func:`jaxskel.skeleton._ik.solve_frame`, vmapped) a single problem; both
-use :class:`AcceptedSmall` and a :class:`NielsenDamping` with ``lam_min`` (the damping
-never falls below it), ``lam_max`` (where the iteration counts as converged) and
-``predicted_floor``. A different schedule (e.g. multiply/divide by constants) is another
+take their solver from :func:`jaxskel.skeleton._ik.ik_solver`: :class:`AcceptedSmall` and
+a :class:`NielsenDamping` with ``lam_min`` (the damping never falls below it),
+``lam_max`` (past it the iteration counts as converged) and ``predicted_floor``. A different schedule (e.g. multiply/divide by constants) is another
 damping policy with the same methods.
 """
 
