@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from ._ik import Motion, forward_kinematics, ik_solve, inverse_kinematics
 from ._rigid_fit import Skeleton, fit_rigid
+from ._rigid_records import RigidDiagnostics, RigidOptions
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
@@ -16,4 +17,4 @@ from ._ik import (
 from ._ik_batch import solver_shape
 from ._rigid_fit import SOLVED_JOINT_WEIGHT, longest_bones
 
-__all__ = ["Motion", "Skeleton", "fit_rigid", "forward_kinematics", "ik_solve", "inverse_kinematics"]
+__all__ = ["Motion", "RigidDiagnostics", "RigidOptions", "Skeleton", "fit_rigid", "forward_kinematics", "ik_solve", "inverse_kinematics"]

@@ -92,18 +92,15 @@ from ._ik import (
     kinematic_chain,
 )
 from ._ik_batch import batch_model, solver_shape
+from ._rigid_records import JOINT_WEIGHT, RigidDiagnostics, RigidOptions
 from ._rigid_sweeps import SweepProblem, alternate, offset_pairs
 from ._rigid_sweeps import offset_pairs as _offset_pairs  # noqa: F401  (tests reach them here)
 from ._rigid_sweeps import offset_system as _offset_system  # noqa: F401
 
-__all__ = ["Skeleton", "fit_rigid", "validate_tree"]
+__all__ = ["JOINT_WEIGHT", "RigidDiagnostics", "RigidOptions", "Skeleton", "fit_rigid", "validate_tree"]
 
 #: Pairs (beyond the newest) the refinement's Anderson acceleration combines (``_refine``).
 _ANDERSON_MEMORY = 5
-
-#: Weight of an input joint centre relative to a marker in the refinement (``fit_rigid``'s
-#: default: the centres are trusted like a marker).
-JOINT_WEIGHT = 1.0
 
 #: The weight :func:`jaxskel.fit_skeleton` gives the centres of its own joint solve. Soft
 #: tissue that moves with the joint angles biases each per-frame centre (a marker near
@@ -157,22 +154,10 @@ class Skeleton:
     nonrigid_markers
         Labels of markers that do not sit rigidly on their segment (module docstring).
     diagnostics
-        Read-only mapping of plain values: ``sweeps``, ``result`` (0 converged, 7 hit
-        ``max_sweeps``), ``cost_history`` (mean squared marker residual per sweep, m^2),
-        ``offset_steps`` (per sweep, the largest offset move of its update, m; the
-        refinement stops below ``xtol``), ``residual_rms`` (m), ``frames_used``,
-        ``frames_rejected``, ``rest_frame``, ``ik_steps_mean``, ``ik_steps_max``,
-        ``ik_failures``, ``procrustes_segments`` (segments posed by Procrustes), ``procrustes_rms`` (per segment, m),
-        ``hinge_shift`` (per joint: how far it was moved along its axis into its limb
-        plane, m, signed along ``hinge_axis``; 0 for joints not moved) and ``hinge_axis``
-        (per joint: that axis in the parent frame, NaN for joints not moved),
-        ``attachment_weight`` and ``attachment_scatter`` (per joint: the weight of a
-        one-marker segment's joint in its host's Procrustes alignment, 1 for the other
-        joints, and its RMS scatter in the host, m, NaN for the others); when the
-        refined poses showed a moved joint turning about more than one axis, the fit is
-        redone without moving it and ``hinges_unmoved`` lists those joints; markers left
-        out because no frame shows them with the rest of their segment are in
-        ``unplaced_markers`` (see :func:`fit_rigid`).
+        The fit's :class:`RigidDiagnostics` (its entries are documented there): a typed
+        record that is also a read-only mapping. A plain mapping given here (one read back
+        from a result file, or the pipeline's with its ``"anchored"`` entry added) becomes
+        that record when it holds a rigid fit's entries, else stays a read-only mapping.
     segment_names
         (S,) names of the segments (display and export only; ``()`` when not named:
         :meth:`names` derives them from the markers' labels).
@@ -202,7 +187,10 @@ class Skeleton:
             a = np.array(getattr(self, name), copy=True)
             a.setflags(write=False)
             object.__setattr__(self, name, a)
-        object.__setattr__(self, "diagnostics", types.MappingProxyType(dict(self.diagnostics)))
+        # a rigid fit's entries as their typed record (also when read back as a plain mapping)
+        typed = RigidDiagnostics.from_mapping(self.diagnostics)
+        diagnostics = typed if typed is not None else types.MappingProxyType(dict(self.diagnostics))
+        object.__setattr__(self, "diagnostics", diagnostics)
         object.__setattr__(self, "marker_labels", tuple(str(v) for v in self.marker_labels))
         object.__setattr__(self, "nonrigid_markers", tuple(str(v) for v in self.nonrigid_markers))
         names = tuple(str(v) for v in self.segment_names)
@@ -610,6 +598,10 @@ def _refine(
 
 
 # ------------------------------------------------------------------- fit_rigid
+# The fit in phases, each a small function between typed records:
+#   _validate_inputs -> [per attempt: _choose_frames -> _procrustes -> _hinges ->
+#   _starting_offsets -> _refinement -> _residuals -> _rebase -> _bones -> _assemble].
+# An attempt may instead say what to leave out (LeftOut); fit_rigid then fits again without it.
 def _unposed_segments(marker_segment: np.ndarray, edges: np.ndarray, n_segments: int) -> np.ndarray:
     """Segments with no marker and a single joint: nothing fixes their pose."""
     markers = np.bincount(marker_segment[marker_segment >= 0], minlength=n_segments)
@@ -617,93 +609,58 @@ def _unposed_segments(marker_segment: np.ndarray, edges: np.ndarray, n_segments:
     return np.flatnonzero((markers == 0) & (joints < 2))
 
 
-def _positive_number(value: object) -> bool:
-    """A finite real number > 0 (not a bool). The type is checked first, so a string or
-    ``None`` gets fit_rigid's own message rather than numpy's TypeError."""
-    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    return real and bool(np.isfinite(value)) and value > 0
+@dataclasses.dataclass(frozen=True)
+class _Inputs:
+    """fit_rigid's data, checked: markers ``x`` (F, M, 3) where ``mask`` (F, M), their
+    segments (M,; -1 unused), the tree (J, 2) directed away from ``root``, the joint
+    centres (F, J, 3; NaN where undefined) and the markers' labels (M,)."""
+
+    x: np.ndarray
+    mask: np.ndarray
+    marker_segment: np.ndarray
+    edges: np.ndarray
+    root: int
+    joint_positions: np.ndarray
+    labels: tuple[str, ...]
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.edges.shape[0]) + 1
 
 
-@float64_scope
-def fit_rigid(
-    trial: Trial | tuple[np.ndarray, np.ndarray],
-    marker_segment: Sequence[int] | np.ndarray,
-    edges: np.ndarray,
-    joint_positions: np.ndarray,
-    *,
-    root: int | None = None,
-    refine: bool = True,
-    max_steps: int = 100,
-    max_sweeps: int = 200,
-    xtol: float = 1e-6,
-    max_frames: int = 1000,
-    prior_weight: float = DEFAULT_PRIOR_WEIGHT,
-    nonrigid_factor: float = 3.0,
-    labels: Sequence[str] | None = None,
-    sliding_joints: Sequence[bool] | np.ndarray | None = None,
-    joint_weight: float = JOINT_WEIGHT,
-    landmarks: Trial | None = None,
-) -> Skeleton:
-    """Fit a rigid skeleton to markers and joint centres (Kirk et al. 2005, §3.3).
+@dataclasses.dataclass(frozen=True)
+class LeftOut:
+    """What the fit leaves out, as its attempts find it: ``markers`` (indices into the
+    trial's markers, in the order found) that no frame shows with the rest of their
+    segment, and ``hinges`` (sorted joint indices) whose slide the refined poses rejected."""
 
-    Parameters
-    ----------
-    trial
-        A :class:`Trial`, or ``(x (F, M, 3), mask (F, M))`` in metres.
-    marker_segment
-        (M,) segment of each marker, -1 for markers to ignore.
-    edges
-        (J, 2) parent -> child segment pairs forming a tree over S = J + 1 segments.
-    joint_positions
-        (F, J, 3) joint centres per frame (row j <-> edge j), NaN where undefined, e.g.
-        ``Topology.joint_positions``.
-    root
-        Root segment (default: the tree's root). Given a different root, edges are
-        re-oriented away from it (rows keep their order).
-    refine
-        Run the global refinement after Procrustes (module docstring).
-    max_steps
-        Levenberg-Marquardt iterations per frame and sweep.
-    max_sweeps, xtol
-        Refinement stops after ``max_sweeps`` or when an offset update moves no offset by
-        more than ``xtol`` metres without raising the cost (default 1 um: the alternation
-        is slow along bone lengths, so a small update may still be far from the optimum).
-    max_frames
-        At most this many frames (evenly spaced) are used.
-    prior_weight
-        IK pose-prior weight, metres per radian (see :mod:`jaxskel.skeleton._ik`).
-    nonrigid_factor
-        Flag markers with residual RMS above this multiple of the median (and 1 mm above it).
-    labels
-        Marker labels when ``trial`` is an array tuple (default ``M0, M1, ...``).
-    sliding_joints
-        (J,) booleans: joints whose centre the markers leave free along an axis (hinges;
-        :func:`jaxskel.fit_skeleton` passes ``topology.undetermined > 0``). Each is moved
-        along its axis into the plane of its neighbouring joints before the refinement
-        (:mod:`jaxskel.skeleton._hinge_centres`); the shifts are in ``diagnostics["hinge_shift"]``.
-        Default: none moved (the input centres' placement, i.e. the distance prior's).
-        After the refinement they are placed once more on the refined poses.
-    joint_weight
-        Weight of an input joint centre relative to a marker in the refinement (1: like a
-        marker; :func:`jaxskel.fit_skeleton` uses ``SOLVED_JOINT_WEIGHT`` = 0.1 for its own
-        solved centres, see there).
-    landmarks
-        Markers on the same frames that are on no segment (the extra markers of a static
-        trial fitted with a dynamic one, :func:`jaxskel.segment.left_out_markers`): they take
-        no part in the fit, but two that straddle a sliding joint place it midway between
-        them (:func:`jaxskel.skeleton._hinge_centres.straddling_pair`), located in the
-        joint's segment frames from the frames that show them. The fit's own markers never
-        do (a moving limb's oblique axis passes pairs of surface markers).
+    markers: tuple[int, ...] = ()
+    hinges: tuple[int, ...] = ()
 
-    Returns
-    -------
-    :class:`Skeleton`. Raises :class:`InputError` for inconsistent inputs and
-    :class:`DegenerateMotionError` when a segment cannot be placed. A marker never seen
-    in a frame with the other points of its segment (nothing places it there) is left
-    out instead, with a :class:`DegenerateMotionWarning`, as long as its segment keeps a
-    marker or two joints: ``marker_segment`` -1 in the result, its label in
-    ``diagnostics["unplaced_markers"]``.
-    """
+    def __or__(self, other: LeftOut) -> LeftOut:
+        return LeftOut(self.markers + other.markers, tuple(sorted(set(self.hinges) | set(other.hinges))))
+
+    def marker_segment(self, marker_segment: np.ndarray) -> np.ndarray:
+        """``marker_segment`` with the markers left out set to -1 (a copy)."""
+        kept = np.array(marker_segment, copy=True)
+        kept[list(self.markers)] = -1
+        return kept
+
+    def sliding(self, sliding: Sequence[bool] | np.ndarray | None) -> Sequence[bool] | np.ndarray | None:
+        """``sliding_joints`` without the hinges left unmoved."""
+        if not self.hinges:
+            return sliding
+        rejected = np.zeros(np.asarray(sliding).shape[0], bool)
+        rejected[list(self.hinges)] = True
+        return np.asarray(sliding, dtype=bool) & ~rejected
+
+
+def _validate_inputs(
+    trial: Trial | tuple[np.ndarray, np.ndarray], marker_segment: Sequence[int] | np.ndarray, edges: np.ndarray,
+    joint_positions: np.ndarray, root: int | None, labels: Sequence[str] | None,
+) -> _Inputs:
+    """Phase 0: check fit_rigid's data (its docstring); raise :class:`InputError` or
+    :class:`DegenerateMotionError` (fewer than 3 frames)."""
     x, mask, trial_labels = _as_arrays(trial)
     n_frames, n_markers = mask.shape
     seg = np.asarray(marker_segment)
@@ -725,44 +682,92 @@ def fit_rigid(
         labels = trial_labels or tuple(f"M{i}" for i in range(n_markers))
     if len(labels) != n_markers:
         raise InputError(f"{len(labels)} labels for {n_markers} markers")
-    if not _positive_number(joint_weight):
-        raise InputError(f"joint_weight must be a positive number, got {joint_weight!r}")
-    whole_sweeps = isinstance(max_sweeps, (int, np.integer)) and not isinstance(max_sweeps, bool)
-    if not (_positive_number(xtol) and whole_sweeps and max_sweeps >= 1):
-        raise InputError(
-            f"xtol must be a positive length in metres and max_sweeps a whole number >= 1; got xtol={xtol!r}, "
-            f"max_sweeps={max_sweeps!r}"
-        )
     if n_frames < 3:
         raise DegenerateMotionError("fit_rigid needs a motion (at least 3 frames); record more frames")
+    return _Inputs(x=x, mask=mask, marker_segment=seg, edges=edges, root=root, joint_positions=jp, labels=labels)
 
+
+@dataclasses.dataclass(frozen=True)
+class _Frames:
+    """The fitting frames and their data. ``frames`` (n,): the trial frames fitted;
+    ``padded`` (F,): them padded to a bucket of frames (repeats of the last), ``real``
+    (F,) false for the padding. ``used`` (U,): the trial's markers on a segment, ``useg``
+    (U,) their segments. ``xs``, ``ms`` (F, U, 3 / F, U): their positions and presence
+    (absent in the padding); ``js``, ``jm`` (F, J, 3 / F, J): the joint centres (0 where
+    absent) and their presence."""
+
+    frames: np.ndarray
+    padded: np.ndarray
+    real: np.ndarray
+    used: np.ndarray
+    useg: np.ndarray
+    xs: np.ndarray
+    ms: np.ndarray
+    js: np.ndarray
+    jm: np.ndarray
+
+
+def _choose_frames(inputs: _Inputs, seg: np.ndarray, max_frames: int) -> _Frames:
+    """Phase 1: at most ``max_frames`` frames, evenly spaced among those showing some
+    marker, padded to a bucket of frames (:func:`bucket_size`) so that trials share
+    compiled shapes. Raises :class:`DegenerateMotionError` for a segment nothing poses
+    or fewer than 3 frames with markers."""
+    n_seg, edges = inputs.n_segments, inputs.edges
     used = np.flatnonzero(seg >= 0)
     useg = seg[used]
-    n_used = used.size
-    n_joints = n_seg - 1
-    joint_ok = np.isfinite(jp).all(axis=-1)
+    joint_ok = np.isfinite(inputs.joint_positions).all(axis=-1)
     unposed = _unposed_segments(seg, edges, n_seg)
     if unposed.size:
         raise DegenerateMotionError(
             f"segment {int(unposed[0])} has no markers and a single joint, so nothing fixes its pose; "
             "merge it into its neighbour or add markers"
         )
-
-    # Frames: evenly spaced, at most max_frames, among frames showing some markers.
-    candidates = np.flatnonzero(mask[:, used].any(axis=1))
+    candidates = np.flatnonzero(inputs.mask[:, used].any(axis=1))
     if candidates.size < 3:
         raise DegenerateMotionError("fewer than 3 frames show any marker; nothing to fit")
     frames = candidates[np.unique(np.linspace(0, candidates.size - 1, min(max_frames, candidates.size)).astype(int))]
-    # Pad to a bucket of frames (absent samples) so that trials share compiled shapes.
     n_fit = frames.size
     padded = np.concatenate([frames, np.full(bucket_size(n_fit) - n_fit, frames[-1])])
     real = np.arange(padded.size) < n_fit
-    xs = x[padded][:, used]
-    ms = mask[padded][:, used] & real[:, None]
-    js = np.where(joint_ok[padded][..., None], jp[padded], 0.0)
-    jm = joint_ok[padded] & real[:, None]
+    jp = inputs.joint_positions
+    return _Frames(
+        frames=frames, padded=padded, real=real, used=used, useg=useg,
+        xs=inputs.x[padded][:, used], ms=inputs.mask[padded][:, used] & real[:, None],
+        js=np.where(joint_ok[padded][..., None], jp[padded], 0.0), jm=joint_ok[padded] & real[:, None],
+    )
 
-    # ---- 1. Procrustes per segment: points = its markers, then its joints.
+
+@dataclasses.dataclass(frozen=True)
+class _Procrustes:
+    """Per-segment Procrustes. Segment s's points are its markers ``members[s]`` (indices
+    into ``used``), then its joints ``seg_joints[s]``, padded to ``width``: ``pts`` (F, S,
+    P, 3), ``pres`` (F, S, P). ``usable`` (F, S): the frames aligned; ``covered`` (S, P):
+    the points seen in one. ``ref`` (S, P, 3) the mean clouds, ``rot``, ``trans`` (F, S,
+    3, 3 / F, S, 3) each frame's alignment (world -> segment: ``R x + t``), ``rms`` (S, P)
+    each point's scatter; ``alignable`` (S,): posed by Procrustes. ``attachment_weight``,
+    ``attachment_scatter`` (J,): as reported (:class:`RigidDiagnostics`)."""
+
+    members: list[np.ndarray]
+    seg_joints: list[np.ndarray]
+    width: int
+    pts: np.ndarray
+    pres: np.ndarray
+    usable: np.ndarray
+    covered: np.ndarray
+    ref: np.ndarray
+    rot: np.ndarray
+    trans: np.ndarray
+    rms: np.ndarray
+    alignable: np.ndarray
+    attachment_weight: np.ndarray
+    attachment_scatter: np.ndarray
+
+
+def _procrustes(fr: _Frames, edges: np.ndarray, n_seg: int) -> _Procrustes:
+    """Phase 2: generalised Procrustes per segment (module docstring, step 1), the joints
+    of one-marker attachments weighted by how still they sit in their host."""
+    n_used, n_joints = fr.used.size, n_seg - 1
+    useg, xs, ms, js, jm = fr.useg, fr.xs, fr.ms, fr.js, fr.jm
     members = [np.flatnonzero(useg == s) for s in range(n_seg)]
     seg_joints = [np.flatnonzero((edges[:, 0] == s) | (edges[:, 1] == s)) for s in range(n_seg)]
     width = max(len(m) + len(j) for m, j in zip(members, seg_joints))
@@ -815,33 +820,81 @@ def fit_rigid(
         if usable[:, s].sum() >= 3 and cloud.shape[0] >= 3:
             sv = np.linalg.svd(cloud - cloud.mean(axis=0), compute_uv=False)
             alignable[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
-
-    landmark_local, landmark_joint = _landmarks_local(
-        landmarks, padded, real, gpa_rot, gpa_t, usable, n_frames, ref, edges, members, seg_joints
+    return _Procrustes(
+        members=members, seg_joints=seg_joints, width=width, pts=pts, pres=pres, usable=usable, covered=covered,
+        ref=ref, rot=gpa_rot, trans=gpa_t, rms=gpa_rms, alignable=alignable, attachment_weight=hung_weight,
+        attachment_scatter=hung_scatter,
     )
-    hinge_shift, hinge_axis, weights_of_joints, straddle = _place_hinges(
-        sliding_joints, edges, members, seg_joints, ref, gpa_rot, gpa_rms, usable, alignable, js, jm,
+
+
+@dataclasses.dataclass(frozen=True)
+class _Hinges:
+    """The sliding joints' placement (:func:`_place_hinges`): ``shift`` (J,), ``axis``
+    (J, 3; parent Procrustes frame, NaN for joints not moved), ``weights`` (J,; as
+    neighbours) and ``straddle`` (J, 2; the landmarks that placed each, -1 for none)."""
+
+    shift: np.ndarray
+    axis: np.ndarray
+    weights: np.ndarray
+    straddle: np.ndarray
+
+
+def _hinges(
+    fr: _Frames, gp: _Procrustes, edges: np.ndarray, sliding: Sequence[bool] | np.ndarray | None,
+    landmarks: Trial | None, n_frames: int,
+) -> _Hinges:
+    """Phase 3: move the sliding joints along their axes (:func:`_place_hinges`): this
+    updates ``gp.ref`` and ``fr.js`` in place."""
+    landmark_local, landmark_joint = _landmarks_local(
+        landmarks, fr.padded, fr.real, gp.rot, gp.trans, gp.usable, n_frames, gp.ref, edges, gp.members,
+        gp.seg_joints,
+    )
+    shift, axis, weights, straddle = _place_hinges(
+        sliding, edges, gp.members, gp.seg_joints, gp.ref, gp.rot, gp.rms, gp.usable, gp.alignable, fr.js, fr.jm,
         landmark_local, landmark_joint,
     )
+    return _Hinges(shift=shift, axis=axis, weights=weights, straddle=straddle)
 
-    # Local frames: world-aligned at a common frame (or the segment's nearest usable one).
+
+@dataclasses.dataclass(frozen=True)
+class _Start:
+    """Starting offsets of the refinement: ``marker_theta`` (U, 3), ``joint_theta`` (J, 3),
+    in local frames world-aligned at a common frame; ``hinge_axis_local`` (J, 3) the moved
+    joints' axes in those parent frames (NaN for the others)."""
+
+    marker_theta: np.ndarray
+    joint_theta: np.ndarray
+    hinge_axis_local: np.ndarray
+
+
+def _starting_offsets(
+    fr: _Frames, gp: _Procrustes, hinges: _Hinges, inputs: _Inputs, seg: np.ndarray
+) -> _Start | LeftOut:
+    """Phase 4: local frames (world-aligned at a common frame, or the segment's nearest
+    usable one) and the offsets of markers and joints in them. Markers nothing places
+    (never seen with the points that fix their segment) are returned as a
+    :class:`LeftOut` when their segments stay posable without them; otherwise a segment
+    that cannot be placed raises :class:`DegenerateMotionError`."""
+    edges, root, n_seg, labels = inputs.edges, inputs.root, inputs.n_segments, inputs.labels
+    members, seg_joints, usable, gpa_rot = gp.members, gp.seg_joints, gp.usable, gp.rot
+    n_used, n_joints = fr.used.size, n_seg - 1
     common = int(np.argmax(usable.sum(axis=1)))
     hinge_axis_local = np.full((n_joints, 3), np.nan)
-    for j in np.flatnonzero(np.isfinite(hinge_axis[:, 0])):
+    for j in np.flatnonzero(np.isfinite(hinges.axis[:, 0])):
         p = int(edges[j, 0])
-        hinge_axis_local[j] = hinge_axis[j] @ gpa_rot[_nearest_usable(usable[:, p], common), p]
-    local = np.full((n_seg, width, 3), np.nan)
+        hinge_axis_local[j] = hinges.axis[j] @ gpa_rot[_nearest_usable(usable[:, p], common), p]
+    local = np.full((n_seg, gp.width, 3), np.nan)
     for s in range(n_seg):
         n_pts = len(members[s]) + len(seg_joints[s])
-        if alignable[s]:
+        if gp.alignable[s]:
             f = _nearest_usable(usable[:, s], common)
-            cloud = ref[s, :n_pts] @ gpa_rot[f, s]  # rows: R^T p (world-aligned axes)
-            cloud[~covered[s, :n_pts]] = np.nan
+            cloud = gp.ref[s, :n_pts] @ gpa_rot[f, s]  # rows: R^T p (world-aligned axes)
+            cloud[~gp.covered[s, :n_pts]] = np.nan
         else:
-            seen = pres[:, s, :n_pts]
+            seen = gp.pres[:, s, :n_pts]
             score = seen.sum(axis=1) - 1e-6 * np.abs(np.arange(seen.shape[0]) - common)
             f = int(np.argmax(score))
-            cloud = np.where(seen[f][:, None], pts[f, s, :n_pts], np.nan)
+            cloud = np.where(seen[f][:, None], gp.pts[f, s, :n_pts], np.nan)
         local[s, :n_pts] = cloud
     proximal = np.full(n_seg, -1)
     proximal[edges[:, 1]] = np.arange(n_joints)
@@ -868,30 +921,13 @@ def fit_rigid(
         # Markers never seen in a frame with the points that fix their segment (a label
         # that takes over another's frames, a sync light clustered with a hand): nothing
         # places them on it. Leave them out of the skeleton, say so, and fit the rest.
-        kept_segment = np.array(seg, copy=True)
-        kept_segment[used[unplaced]] = -1
-        if not _unposed_segments(kept_segment, edges, n_seg).size:
-            listed = ", ".join(f"{labels[used[i]]} (segment {int(useg[i])})" for i in unplaced)
-            warnings.warn(
-                f"markers {listed} are never seen in a frame together with the other markers and joints of their "
-                "segment, so the rigid skeleton cannot place them: they are left out of the skeleton and the IK "
-                "(skeleton.diagnostics['unplaced_markers']). A label that takes over another marker's frames, or "
-                "a marker that is not on the body: relabel or remove it",
-                DegenerateMotionWarning,
-                stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
-            )
-            again = fit_rigid(
-                trial, kept_segment, edges, joint_positions, root=root, refine=refine, max_steps=max_steps,
-                max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames, prior_weight=prior_weight,
-                nonrigid_factor=nonrigid_factor, labels=labels, joint_weight=joint_weight,
-                sliding_joints=sliding_joints, landmarks=landmarks,
-            )
-            left_out = tuple(labels[used[i]] for i in unplaced) + tuple(again.diagnostics.get("unplaced_markers", ()))
-            return dataclasses.replace(again, diagnostics={**again.diagnostics, "unplaced_markers": left_out})
-    bad += [int(useg[i]) for i in unplaced]
+        left = LeftOut(markers=tuple(int(m) for m in fr.used[unplaced]))
+        if not _unposed_segments(left.marker_segment(seg), edges, n_seg).size:
+            return left
+    bad += [int(fr.useg[i]) for i in unplaced]
     if bad:
         def points(s: int) -> str:
-            shown = [labels[used[i]] for i in members[s]] + [f"joint {int(j)}" for j in seg_joints[s]]
+            shown = [labels[fr.used[i]] for i in members[s]] + [f"joint {int(j)}" for j in seg_joints[s]]
             return f"segment {s} ({', '.join(shown)})"
 
         raise DegenerateMotionError(
@@ -901,12 +937,56 @@ def fit_rigid(
             "their segments: give more frames in which these segments and their neighbours are seen together "
             "(or, calling fit_rigid yourself, check joint_positions for NaN)"
         )
+    return _Start(marker_theta=marker_theta, joint_theta=joint_theta, hinge_axis_local=hinge_axis_local)
 
-    # ---- 2. Global refinement.
-    obs = np.concatenate([xs, js], axis=1)
-    present = np.concatenate([ms, jm], axis=1).astype(float)
+
+def _unplaced_warning(labels: tuple[str, ...], markers: Sequence[int], seg: np.ndarray) -> str:
+    """The warning for markers left out by :func:`_starting_offsets`."""
+    listed = ", ".join(f"{labels[m]} (segment {int(seg[m])})" for m in markers)
+    return (
+        f"markers {listed} are never seen in a frame together with the other markers and joints of their "
+        "segment, so the rigid skeleton cannot place them: they are left out of the skeleton and the IK "
+        "(skeleton.diagnostics['unplaced_markers']). A label that takes over another marker's frames, or "
+        "a marker that is not on the body: relabel or remove it"
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Refined:
+    """The refinement's result: offsets ``marker_theta`` (U, 3), ``joint_theta`` (J, 3)
+    (local frames of :class:`_Start`), the last sweep's solution ``sol`` (per frame:
+    ``root_position``, ``rotations``, ``num_steps``, ``done``, ``rms``) and its rotations
+    ``rot`` (F, S, 3, 3; segment -> world), the frames ``keep`` (F,), the sweeps' cost
+    ``history`` and ``offset_steps``, whether ``xtol`` was met (``done``), the hinges'
+    total ``hinge_shift`` (J,) and ``chain`` (S, J; :func:`kinematic_chain`)."""
+
+    marker_theta: np.ndarray
+    joint_theta: np.ndarray
+    sol: dict[str, np.ndarray]
+    rot: np.ndarray
+    keep: np.ndarray
+    history: list[float]
+    offset_steps: list[float]
+    done: bool
+    hinge_shift: np.ndarray
+    chain: np.ndarray
+
+
+def _refinement(
+    fr: _Frames, start: _Start, hinges: _Hinges, edges: np.ndarray, options: RigidOptions
+) -> _Refined | LeftOut:
+    """Phase 5: the global refinement (module docstring, step 2). A first pass without
+    offset updates rejects the non-rigid frames (marker RMS above median + 5 MAD); the
+    refinement then runs on the others. A moved hinge the refined poses show turning about
+    more than one axis (``MAX_OFF_AXIS_REFINED``) is returned as a :class:`LeftOut`; the
+    others are placed once more on the refined poses (``start.hinge_axis_local`` is
+    updated in place, :func:`_replace_hinges`)."""
+    n_used, n_joints, n_seg = fr.used.size, edges.shape[0], edges.shape[0] + 1
+    useg, real = fr.useg, fr.real
+    obs = np.concatenate([fr.xs, fr.js], axis=1)
+    present = np.concatenate([fr.ms, fr.jm], axis=1).astype(float)
     obs_segment = np.concatenate([useg, edges[:, 1]]).astype(np.int32)  # joints: on the child
-    base_weight = np.concatenate([np.ones(n_used), np.full(n_joints, float(joint_weight) ** 2)])
+    base_weight = np.concatenate([np.ones(n_used), np.full(n_joints, float(options.joint_weight) ** 2)])
     chain_np = kinematic_chain(np.asarray(edges)).path
     coef = np.zeros((n_used + n_joints, n_used + n_joints))
     coef[np.arange(n_used), np.arange(n_used)] = 1.0
@@ -914,12 +994,13 @@ def fit_rigid(
     coef[n_used:, n_used:] = chain_np[edges[:, 0]] + np.eye(n_joints)
     unknown_segment = np.concatenate([useg, edges[:, 0]]).astype(np.int32)
 
-    prior_w = np.full((n_seg,), float(prior_weight))
+    prior_w = np.full((n_seg,), float(options.prior_weight))
     common_args = dict(
         obs_segment=obs_segment, obs_base_weight=base_weight, edges=np.asarray(edges), coef=coef,
-        unknown_segment=unknown_segment, prior_weight=prior_w, xtol=xtol, max_steps=max_steps,
-        max_sweeps=max_sweeps,
+        unknown_segment=unknown_segment, prior_weight=prior_w, xtol=options.xtol, max_steps=options.max_steps,
+        max_sweeps=options.max_sweeps,
     )
+    marker_theta, joint_theta, hinge_axis_local = start.marker_theta, start.joint_theta, start.hinge_axis_local
     # First pass without offset updates: per-frame residuals to reject non-rigid frames.
     _, _, first, _, _, _ = _refine(marker_theta, joint_theta, obs, present, start=None, refine=False, **common_args)
     rms = first["rms"]
@@ -927,10 +1008,11 @@ def fit_rigid(
     mad = 1.4826 * np.median(np.abs(rms[real] - med))
     keep = real & (rms <= med + 5.0 * max(mad, 1e-4 * med))
     m_th, j_th, sol, history, offset_steps, done = _refine(
-        marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=refine, **common_args
+        marker_theta, joint_theta, obs, present * keep[:, None], start=first, refine=options.refine, **common_args
     )
     rot = quat_to_matrix_np(sol["rotations"])  # (F, S, 3, 3)
-    if refine and np.isfinite(hinge_axis_local[:, 0]).any():
+    hinge_shift = hinges.shift
+    if options.refine and np.isfinite(hinge_axis_local[:, 0]).any():
         moved = np.isfinite(hinge_axis_local[:, 0])
         rejected = moved & ~_turns_as_hinge(edges, rot, keep, moved, MAX_OFF_AXIS_REFINED)
         if rejected.any():
@@ -938,56 +1020,72 @@ def fit_rigid(
             # all kept frames show the joint turning about more than one axis, so its
             # markers pin the centre and the slide is wrong (MAX_OFF_AXIS_REFINED): fit
             # again without it.
-            again = fit_rigid(
-                trial, marker_segment, edges, joint_positions, root=root, refine=refine, max_steps=max_steps,
-                max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames, prior_weight=prior_weight,
-                nonrigid_factor=nonrigid_factor, labels=labels, joint_weight=joint_weight,
-                sliding_joints=np.asarray(sliding_joints, dtype=bool) & ~rejected, landmarks=landmarks,
-            )
-            unmoved = sorted(set(again.diagnostics.get("hinges_unmoved", [])) | set(np.flatnonzero(rejected).tolist()))
-            return dataclasses.replace(again, diagnostics={**again.diagnostics, "hinges_unmoved": unmoved})
+            return LeftOut(hinges=tuple(int(j) for j in np.flatnonzero(rejected)))
         # The refinement weighs the joint centres lightly, so a hinge may drift along its
         # axis again with the markers' soft tissue: place it once more on the final poses.
         m_th, j_th = np.array(m_th), np.array(j_th)
-        again = _replace_hinges(edges, useg, m_th, j_th, rot, keep, weights_of_joints, hinge_axis_local, straddle)
+        again = _replace_hinges(edges, useg, m_th, j_th, rot, keep, hinges.weights, hinge_axis_local, hinges.straddle)
         if np.any(again):
             hinge_shift = hinge_shift + again
             _, _, sol, _, _, _ = _refine(
                 m_th, j_th, obs, present * keep[:, None], start=sol, refine=False, **common_args
             )
             rot = quat_to_matrix_np(sol["rotations"])
+    return _Refined(
+        marker_theta=m_th, joint_theta=j_th, sol=sol, rot=rot, keep=keep, history=history,
+        offset_steps=offset_steps, done=done, hinge_shift=hinge_shift, chain=chain_np,
+    )
 
-    # Per-marker residuals over the kept frames with the final offsets and poses.
+
+def _residuals(fr: _Frames, rf: _Refined, edges: np.ndarray) -> tuple[np.ndarray, float]:
+    """Phase 6: per-marker residual RMS (U,; NaN where never seen) and the overall RMS
+    over the kept frames, with the final offsets and poses."""
+    rot = rf.rot
     # segment origins (forward kinematics, ik._poses, on the host): each joint sits at its
     # parent's offset and at its child's origin
-    step = np.einsum("fjab,jb->fja", rot[:, edges[:, 0]], j_th)
-    trans = np.asarray(sol["root_position"])[:, None, :] + np.einsum("sj,fja->fsa", chain_np, step)
-    pred = np.einsum("fmab,mb->fma", rot[:, useg], m_th) + trans[:, useg]
-    err2 = np.sum((pred - xs) ** 2, axis=-1)
-    w = ms & keep[:, None]
+    step = np.einsum("fjab,jb->fja", rot[:, edges[:, 0]], rf.joint_theta)
+    trans = np.asarray(rf.sol["root_position"])[:, None, :] + np.einsum("sj,fja->fsa", rf.chain, step)
+    pred = np.einsum("fmab,mb->fma", rot[:, fr.useg], rf.marker_theta) + trans[:, fr.useg]
+    err2 = np.sum((pred - fr.xs) ** 2, axis=-1)
+    w = fr.ms & rf.keep[:, None]
     marker_rms_used = np.sqrt(np.sum(err2 * w, axis=0) / np.maximum(w.sum(axis=0), 1))
     marker_rms_used[w.sum(axis=0) == 0] = np.nan
     residual_rms = float(np.sqrt(np.sum(err2 * w) / max(w.sum(), 1)))
+    return marker_rms_used, residual_rms
 
-    # ---- 3. Re-base: axes world-aligned at the rest frame, root origin at its markers' centroid.
-    kept = np.flatnonzero(keep)
-    rest_local = kept[np.argmax(ms[kept].sum(axis=1))]
-    r_rest = rot[rest_local]
-    m_th = np.einsum("mab,mb->ma", r_rest[useg], m_th)
-    j_th = np.einsum("jab,jb->ja", r_rest[edges[:, 0]], j_th)
+
+@dataclasses.dataclass(frozen=True)
+class _Rested:
+    """Offsets re-based to the rest frame: ``marker_theta`` (U, 3), ``joint_theta`` (J, 3),
+    ``rest`` (index into the padded frames) and ``r_rest`` (S, 3, 3) its rotations."""
+
+    marker_theta: np.ndarray
+    joint_theta: np.ndarray
+    rest: int
+    r_rest: np.ndarray
+
+
+def _rebase(fr: _Frames, rf: _Refined, edges: np.ndarray, root: int) -> _Rested:
+    """Phase 7: axes world-aligned at the rest frame (the first kept frame that shows the
+    most markers), the root's origin at its markers' centroid (else its joints')."""
+    useg = fr.useg
+    kept = np.flatnonzero(rf.keep)
+    rest_local = kept[np.argmax(fr.ms[kept].sum(axis=1))]
+    r_rest = rf.rot[rest_local]
+    m_th = np.einsum("mab,mb->ma", r_rest[useg], rf.marker_theta)
+    j_th = np.einsum("jab,jb->ja", r_rest[edges[:, 0]], rf.joint_theta)
     root_markers = useg == root
     shift = m_th[root_markers].mean(axis=0) if root_markers.any() else j_th[edges[:, 0] == root].mean(axis=0)
     m_th[root_markers] -= shift
     j_th[edges[:, 0] == root] -= shift
+    return _Rested(marker_theta=m_th, joint_theta=j_th, rest=rest_local, r_rest=r_rest)
 
-    marker_offsets = np.full((n_markers, 3), np.nan)
-    marker_offsets[used] = m_th
-    joint_offsets = np.stack([j_th, np.zeros_like(j_th)], axis=1)
-    marker_rms = np.full(n_markers, np.nan)
-    marker_rms[used] = marker_rms_used
-    flagged = above_median(marker_rms, nonrigid_factor, NONRIGID_MARGIN)
-    # Hinge axes in the final parent frames (fitting-local -> rest-aligned).
-    hinge_axis_rest = np.einsum("jab,jb->ja", r_rest[edges[:, 0]], hinge_axis_local)
+
+def _bones(
+    seg_joints: list[np.ndarray], edges: np.ndarray, joint_offsets: np.ndarray, n_seg: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Phase 8: every pair of joints on a segment: ``(bones (B, 2), bone_lengths (B,),
+    bone_segment (B,), segment_lengths (S,))``."""
     bones, bone_seg = [], []
     for s in range(n_seg):
         js_s = seg_joints[s]
@@ -1004,68 +1102,224 @@ def fit_rigid(
         [np.linalg.norm(joint_on(s, a) - joint_on(s, b)) for (a, b), s in zip(bones, bone_seg)]
     )
     segment_lengths = longest_bones(bone_seg, bone_lengths, n_seg)
+    return bones_arr, bone_lengths, np.asarray(bone_seg, dtype=int), segment_lengths
 
+
+def _report(
+    fr: _Frames, gp: _Procrustes, hinges: _Hinges, start: _Start, rf: _Refined, rested: _Rested,
+    residual_rms: float, inputs: _Inputs, options: RigidOptions, landmarks: Trial | None, left: LeftOut,
+) -> tuple[RigidDiagnostics, list[str]]:
+    """Phase 9: the diagnostics and the texts of the :class:`ConvergenceWarning` s to give."""
+    edges, labels = inputs.edges, inputs.labels
+    n_used, n_joints, n_seg = fr.used.size, edges.shape[0], inputs.n_segments
+    keep, sol = rf.keep, rf.sol
     steps = sol["num_steps"][keep]
     results = np.where(sol["done"], RESULT_SUCCESSFUL, RESULT_MAX_STEPS)[keep]
-    n_sweeps = len(history)
-    converged = bool(done) or not refine
+    converged = bool(rf.done) or not options.refine
+    notes = []
     if not converged:
-        warnings.warn(
-            f"rigid refinement stopped after max_sweeps={max_sweeps} sweeps without meeting xtol={xtol} m "
-            f"(the last update moved an offset by {offset_steps[-1]:.2g} m); "
-            "raise max_sweeps (see skeleton.diagnostics['cost_history'])",
-            ConvergenceWarning,
-            stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
+        notes.append(
+            f"rigid refinement stopped after max_sweeps={options.max_sweeps} sweeps without meeting "
+            f"xtol={options.xtol} m (the last update moved an offset by {rf.offset_steps[-1]:.2g} m); "
+            "raise max_sweeps (see skeleton.diagnostics['cost_history'])"
         )
     if (results != RESULT_SUCCESSFUL).any():
-        warnings.warn(
-            f"IK hit max_steps={max_steps} in {(results != RESULT_SUCCESSFUL).sum()} of {results.size} fitting frames",
-            ConvergenceWarning,
-            stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
+        notes.append(
+            f"IK hit max_steps={options.max_steps} in {(results != RESULT_SUCCESSFUL).sum()} of {results.size} "
+            "fitting frames"
         )
     landmark_labels = tuple(landmarks.labels) if landmarks is not None else ()
 
     def names_of(i: int) -> str:
-        return labels[used[i]] if i < n_used else landmark_labels[i - n_used]
+        return labels[fr.used[i]] if i < n_used else landmark_labels[i - n_used]
 
-    diagnostics = {
-        "sweeps": n_sweeps,
-        "result": RESULT_SUCCESSFUL if converged else RESULT_MAX_STEPS,
-        "cost_history": history,
-        "offset_steps": offset_steps,
-        "residual_rms": residual_rms,
-        "frames_used": int(keep.sum()),
-        "frames_rejected": int((real & ~keep).sum()),
-        "rest_frame": int(frames[rest_local]),
-        "ik_steps_mean": float(steps.mean()) if steps.size else 0.0,
-        "ik_steps_max": int(steps.max()) if steps.size else 0,
-        "ik_failures": int((results != RESULT_SUCCESSFUL).sum()),
-        "procrustes_segments": [int(s) for s in np.flatnonzero(alignable)],
-        "hinge_shift": [float(v) for v in hinge_shift],
-        "hinge_placement": [
-            "" if not np.isfinite(hinge_axis_local[j, 0]) and straddle[j, 0] < 0
+    axis_local, straddle, covered = start.hinge_axis_local, hinges.straddle, gp.covered
+    # Hinge axes in the final parent frames (fitting-local -> rest-aligned).
+    hinge_axis_rest = np.einsum("jab,jb->ja", rested.r_rest[edges[:, 0]], axis_local)
+    diagnostics = RigidDiagnostics(
+        sweeps=len(rf.history),
+        result=RESULT_SUCCESSFUL if converged else RESULT_MAX_STEPS,
+        cost_history=rf.history,
+        offset_steps=rf.offset_steps,
+        residual_rms=residual_rms,
+        frames_used=int(keep.sum()),
+        frames_rejected=int((fr.real & ~keep).sum()),
+        rest_frame=int(fr.frames[rested.rest]),
+        ik_steps_mean=float(steps.mean()) if steps.size else 0.0,
+        ik_steps_max=int(steps.max()) if steps.size else 0,
+        ik_failures=int((results != RESULT_SUCCESSFUL).sum()),
+        procrustes_segments=[int(s) for s in np.flatnonzero(gp.alignable)],
+        hinge_shift=[float(v) for v in rf.hinge_shift],
+        hinge_placement=[
+            "" if not np.isfinite(axis_local[j, 0]) and straddle[j, 0] < 0
             else f"between {names_of(straddle[j, 0])} and {names_of(straddle[j, 1])}" if straddle[j, 0] >= 0
             else "limb plane" for j in range(n_joints)
         ],
-        "hinge_axis": hinge_axis_rest.tolist(),
-        "procrustes_rms": [float(np.sqrt(np.mean(gpa_rms[s][covered[s]] ** 2))) if covered[s].any() else float("nan")
-                           for s in range(n_seg)],
-        "attachment_weight": hung_weight.tolist(),
-        "attachment_scatter": hung_scatter.tolist(),
-    }
-    return Skeleton(
+        hinge_axis=hinge_axis_rest.tolist(),
+        procrustes_rms=[float(np.sqrt(np.mean(gp.rms[s][covered[s]] ** 2))) if covered[s].any() else float("nan")
+                        for s in range(n_seg)],
+        attachment_weight=gp.attachment_weight.tolist(),
+        attachment_scatter=gp.attachment_scatter.tolist(),
+        hinges_unmoved=list(left.hinges) if left.hinges else None,
+        unplaced_markers=tuple(labels[m] for m in left.markers) if left.markers else None,
+    )
+    return diagnostics, notes
+
+
+def _fit_once(
+    inputs: _Inputs, options: RigidOptions, sliding: Sequence[bool] | np.ndarray | None, landmarks: Trial | None,
+    left: LeftOut,
+) -> tuple[Skeleton, list[str]] | LeftOut:
+    """One attempt of the fit without what ``left`` leaves out: the skeleton and the
+    texts of its convergence warnings, or what to leave out besides."""
+    edges, root, n_seg = inputs.edges, inputs.root, inputs.n_segments
+    seg = left.marker_segment(inputs.marker_segment)
+    n_markers = seg.shape[0]
+    fr = _choose_frames(inputs, seg, options.max_frames)
+    gp = _procrustes(fr, edges, n_seg)
+    hinges = _hinges(fr, gp, edges, left.sliding(sliding), landmarks, inputs.mask.shape[0])
+    start = _starting_offsets(fr, gp, hinges, inputs, seg)
+    if isinstance(start, LeftOut):
+        return start
+    rf = _refinement(fr, start, hinges, edges, options)
+    if isinstance(rf, LeftOut):
+        return rf
+    marker_rms_used, residual_rms = _residuals(fr, rf, edges)
+    rested = _rebase(fr, rf, edges, root)
+    marker_offsets = np.full((n_markers, 3), np.nan)
+    marker_offsets[fr.used] = rested.marker_theta
+    joint_offsets = np.stack([rested.joint_theta, np.zeros_like(rested.joint_theta)], axis=1)
+    marker_rms = np.full(n_markers, np.nan)
+    marker_rms[fr.used] = marker_rms_used
+    flagged = above_median(marker_rms, options.nonrigid_factor, NONRIGID_MARGIN)
+    bones, bone_lengths, bone_segment, segment_lengths = _bones(gp.seg_joints, edges, joint_offsets, n_seg)
+    diagnostics, notes = _report(fr, gp, hinges, start, rf, rested, residual_rms, inputs, options, landmarks, left)
+    skeleton = Skeleton(
         n_segments=n_seg,
         edges=edges,
         root=root,
-        marker_labels=labels,
+        marker_labels=inputs.labels,
         marker_segment=np.where(seg >= 0, seg, -1),
         marker_offsets=marker_offsets,
         joint_offsets=joint_offsets,
-        bones=bones_arr,
+        bones=bones,
         bone_lengths=bone_lengths,
-        bone_segment=np.asarray(bone_seg, dtype=int),
+        bone_segment=bone_segment,
         segment_lengths=segment_lengths,
         marker_rms=marker_rms,
-        nonrigid_markers=tuple(labels[i] for i in np.flatnonzero(flagged)),
+        nonrigid_markers=tuple(inputs.labels[i] for i in np.flatnonzero(flagged)),
         diagnostics=diagnostics,
     )
+    return skeleton, notes
+
+
+@float64_scope
+def fit_rigid(
+    trial: Trial | tuple[np.ndarray, np.ndarray],
+    marker_segment: Sequence[int] | np.ndarray,
+    edges: np.ndarray,
+    joint_positions: np.ndarray,
+    *,
+    root: int | None = None,
+    refine: bool = True,
+    max_steps: int = 100,
+    max_sweeps: int = 200,
+    xtol: float = 1e-6,
+    max_frames: int = 1000,
+    prior_weight: float = DEFAULT_PRIOR_WEIGHT,
+    nonrigid_factor: float = 3.0,
+    labels: Sequence[str] | None = None,
+    sliding_joints: Sequence[bool] | np.ndarray | None = None,
+    joint_weight: float = JOINT_WEIGHT,
+    landmarks: Trial | None = None,
+    options: RigidOptions | None = None,
+) -> Skeleton:
+    """Fit a rigid skeleton to markers and joint centres (Kirk et al. 2005, §3.3).
+
+    Parameters
+    ----------
+    trial
+        A :class:`Trial`, or ``(x (F, M, 3), mask (F, M))`` in metres.
+    marker_segment
+        (M,) segment of each marker, -1 for markers to ignore.
+    edges
+        (J, 2) parent -> child segment pairs forming a tree over S = J + 1 segments.
+    joint_positions
+        (F, J, 3) joint centres per frame (row j <-> edge j), NaN where undefined, e.g.
+        ``Topology.joint_positions``.
+    root
+        Root segment (default: the tree's root). Given a different root, edges are
+        re-oriented away from it (rows keep their order).
+    refine
+        Run the global refinement after Procrustes (module docstring).
+    max_steps
+        Levenberg-Marquardt iterations per frame and sweep.
+    max_sweeps, xtol
+        Refinement stops after ``max_sweeps`` or when an offset update moves no offset by
+        more than ``xtol`` metres without raising the cost (default 1 um: the alternation
+        is slow along bone lengths, so a small update may still be far from the optimum).
+    max_frames
+        At most this many frames (evenly spaced) are used.
+    prior_weight
+        IK pose-prior weight, metres per radian (see :mod:`jaxskel.skeleton._ik`).
+    nonrigid_factor
+        Flag markers with residual RMS above this multiple of the median (and 1 mm above it).
+    labels
+        Marker labels when ``trial`` is an array tuple (default ``M0, M1, ...``).
+    sliding_joints
+        (J,) booleans: joints whose centre the markers leave free along an axis (hinges;
+        :func:`jaxskel.fit_skeleton` passes ``topology.undetermined > 0``). Each is moved
+        along its axis into the plane of its neighbouring joints before the refinement
+        (:mod:`jaxskel.skeleton._hinge_centres`); the shifts are in ``diagnostics["hinge_shift"]``.
+        Default: none moved (the input centres' placement, i.e. the distance prior's).
+        After the refinement they are placed once more on the refined poses.
+    joint_weight
+        Weight of an input joint centre relative to a marker in the refinement (1: like a
+        marker; :func:`jaxskel.fit_skeleton` uses ``SOLVED_JOINT_WEIGHT`` = 0.1 for its own
+        solved centres, see there).
+    landmarks
+        Markers on the same frames that are on no segment (the extra markers of a static
+        trial fitted with a dynamic one, :func:`jaxskel.segment.left_out_markers`): they take
+        no part in the fit, but two that straddle a sliding joint place it midway between
+        them (:func:`jaxskel.skeleton._hinge_centres.straddling_pair`), located in the
+        joint's segment frames from the frames that show them. The fit's own markers never
+        do (a moving limb's oblique axis passes pairs of surface markers).
+    options
+        The solver settings as one :class:`RigidOptions` (``refine`` ... ``nonrigid_factor``
+        and ``joint_weight``), instead of those keywords (which must then keep their defaults).
+
+    Returns
+    -------
+    :class:`Skeleton`, its ``diagnostics`` a :class:`RigidDiagnostics`. Raises
+    :class:`InputError` for inconsistent inputs and :class:`DegenerateMotionError` when a
+    segment cannot be placed. A marker never seen in a frame with the other points of its
+    segment (nothing places it there) is left out instead, with a
+    :class:`DegenerateMotionWarning`, as long as its segment keeps a marker or two joints:
+    ``marker_segment`` -1 in the result, its label in ``diagnostics["unplaced_markers"]``.
+    A moved hinge that the refined poses show turning about more than one axis is left
+    where its input centre puts it, and the fit redone (``diagnostics["hinges_unmoved"]``).
+    """
+    keywords = dict(
+        refine=refine, max_steps=max_steps, max_sweeps=max_sweeps, xtol=xtol, max_frames=max_frames,
+        prior_weight=prior_weight, nonrigid_factor=nonrigid_factor, joint_weight=joint_weight,
+    )
+    if options is None:
+        options = RigidOptions(**keywords)
+    elif keywords != dataclasses.asdict(RigidOptions()):
+        raise InputError("pass fit_rigid's settings either as options=RigidOptions(...) or as keywords, not both")
+    inputs = _validate_inputs(trial, marker_segment, edges, joint_positions, root, labels)
+    left = LeftOut()
+    while True:
+        attempt = _fit_once(inputs, options, sliding_joints, landmarks, left)
+        if not isinstance(attempt, LeftOut):
+            break
+        if attempt.markers:
+            warnings.warn(
+                _unplaced_warning(inputs.labels, attempt.markers, inputs.marker_segment), DegenerateMotionWarning,
+                stacklevel=3,  # fit_rigid's caller (2 is float64_scope's wrapper)
+            )
+        left = left | attempt
+    skeleton, notes = attempt
+    for note in notes:
+        warnings.warn(note, ConvergenceWarning, stacklevel=3)  # fit_rigid's caller (2 is float64_scope's wrapper)
+    return skeleton
