@@ -426,6 +426,7 @@ def test_bundled_sample_tree_is_anatomical_with_default_settings():
         assert sum(a.segment in e for e in result.edges.tolist()) == 1
 
 
+@pytest.mark.extended  # about 2 min on 2 cores; the bundled sample's tree runs by default
 def test_cmu_01_01_tree_is_anatomical_with_default_settings():
     """CMU subject 01 (the 41-marker set, forward jumps), default settings. The left upper
     arm carries two markers (LUPA, LELB) and has no pose of its own, so the fixed-centre

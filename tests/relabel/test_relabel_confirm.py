@@ -186,6 +186,7 @@ def test_bad_arguments(fitted_relabelled_body):
         jaxskel.relabel.confirm_merges(trial, mapping, dataclasses.replace(result, motion=None))
 
 
+@pytest.mark.extended  # about 3 min on 2 cores; the confirmation is tested on synthetic merges by default
 @pytest.mark.skipif(not REAL.is_dir(), reason="needs ../shared/data/real")
 def test_real_relabelled_recording_is_improved_by_the_skeleton():
     """PronetoRun01 with a new label after every gap: the skeleton rejoins fragments the markers alone lost."""
