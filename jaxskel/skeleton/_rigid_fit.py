@@ -94,8 +94,6 @@ from ._ik import (
 from ._ik_batch import batch_model, solver_shape
 from ._rigid_records import JOINT_WEIGHT, RigidDiagnostics, RigidOptions
 from ._rigid_sweeps import SweepProblem, alternate, offset_pairs
-from ._rigid_sweeps import offset_pairs as _offset_pairs  # noqa: F401  (tests reach them here)
-from ._rigid_sweeps import offset_system as _offset_system  # noqa: F401
 
 __all__ = ["JOINT_WEIGHT", "RigidDiagnostics", "RigidOptions", "Skeleton", "fit_rigid", "validate_tree"]
 

@@ -22,7 +22,7 @@ from jaxskel.segment import combine_trials
 from jaxskel.skeleton import Skeleton, fit_rigid, forward_kinematics, ik_solve, inverse_kinematics
 from jaxskel.skeleton import _ik as ik_module
 from jaxskel.skeleton import _ik_batch as ik_batch
-from jaxskel.skeleton import _rigid_fit as rigid_fit
+from jaxskel.skeleton import _rigid_sweeps as rigid_sweeps
 from jaxskel.skeleton._ik import kinematic_chain
 from jaxskel.skeleton._rigid_fit import SOLVED_JOINT_WEIGHT
 
@@ -312,10 +312,10 @@ def test_offset_system_equals_the_per_frame_normal_equations(seed):
     root = rng.normal(size=(n_f, 3))
     obs = rng.normal(size=(n_f, n_m + n_j, 3))
     w = rng.uniform(0.0, 1.0, size=(n_f, n_m + n_j)) * (rng.uniform(size=(n_f, n_m + n_j)) > 0.2)
-    pairs, pair_index = rigid_fit._offset_pairs(coef, useg)
+    pairs, pair_index = rigid_sweeps.offset_pairs(coef, useg)
     assert len(pairs) < n_seg**2  # only segments on one root path meet
     with jax.enable_x64(True):
-        normal, rhs, const = (np.asarray(a) for a in rigid_fit._offset_system(
+        normal, rhs, const = (np.asarray(a) for a in rigid_sweeps.offset_system(
             jnp.asarray(rot), jnp.asarray(root), jnp.asarray(obs), jnp.asarray(w), jnp.asarray(coef),
             jnp.asarray(useg), jnp.asarray(pairs), jnp.asarray(pair_index)))
     design = np.einsum("ru,fuab->fraub", coef, rot[:, useg]).reshape(n_f, n_m + n_j, 3, -1)
