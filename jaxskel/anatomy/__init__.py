@@ -1,0 +1,15 @@
+"""Body parts of a fitted skeleton, without a template or marker names: which segment is
+the pelvis, the left thigh, the right hand, from the tree, the body frame, the geometry
+and the motion.
+"""
+
+from __future__ import annotations
+
+from ._vocabulary import (
+    JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, joint_name, mirror, side_of,
+)
+
+__all__ = [
+    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "joint_name", "mirror",
+    "side_of",
+]
