@@ -24,6 +24,8 @@ import dataclasses
 
 import numpy as np
 
+from .._errors import InputError
+
 __all__ = [
     "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "joint_name", "mirror",
     "side_of",
@@ -66,6 +68,7 @@ for _s, _p in (("l", "L"), ("r", "R")):
         f"sternoclavicular_{_s}": f"{_p}CJC",
     })
 VIRTUAL_MARKER.update({"lumbar": "LJC", "thoracic": "TJC", "neck": "NJC"})
+del _s, _p
 
 
 def side_of(part: str) -> str:
@@ -114,13 +117,15 @@ class Anatomy:
     def __post_init__(self) -> None:
         unknown = sorted({p for p in self.parts if p and p not in PARTS})
         if unknown:
-            raise ValueError(f"unknown body parts {unknown}; use names from jaxskel.anatomy.PARTS")
+            raise InputError(f"unknown body parts {unknown}; use names from jaxskel.anatomy.PARTS")
         object.__setattr__(self, "parts", tuple(self.parts))
         object.__setattr__(self, "confidence", np.asarray(self.confidence, float))
         object.__setattr__(self, "up", np.asarray(self.up, float))
         object.__setattr__(self, "front", np.asarray(self.front, float))
         if self.confidence.shape != (len(self.parts),):
-            raise ValueError(f"confidence has shape {self.confidence.shape}; expected ({len(self.parts)},)")
+            raise InputError(
+                f"confidence has shape {self.confidence.shape}; expected ({len(self.parts)},): one value per segment"
+            )
 
     @property
     def left(self) -> np.ndarray:

@@ -1,0 +1,49 @@
+"""The named body's vocabulary: one tree over the parts, joint and marker names for each, and the Anatomy record."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jaxskel
+from jaxskel.anatomy import JOINT_OF_PART, PARENT_PART, PARTS, VIRTUAL_MARKER, Anatomy, joint_name, mirror, side_of
+
+
+def test_the_parts_form_one_tree_rooted_at_the_pelvis():
+    assert set(PARENT_PART) == set(PARTS)
+    for part in PARTS:
+        seen, p = set(), part
+        while p:  # every chain ends at the pelvis, without a cycle
+            assert p not in seen
+            seen.add(p)
+            p = PARENT_PART[p]
+        assert "pelvis" in seen
+    assert [p for p in PARTS if not PARENT_PART[p]] == ["pelvis"]
+
+
+def test_sides_mirror_onto_each_other_and_the_tree_is_symmetric():
+    for part in PARTS:
+        assert mirror(mirror(part)) == part
+        assert mirror(part) in PARTS
+        assert side_of(mirror(part)) == {"l": "r", "r": "l", "": ""}[side_of(part)]
+        assert PARENT_PART[mirror(part)] == mirror(PARENT_PART[part])
+    assert side_of("pelvis") == "" and side_of("") == "" and mirror("") == ""
+
+
+def test_every_joint_and_virtual_marker_name_is_distinct():
+    assert set(JOINT_OF_PART) == set(PARTS) - {"pelvis"}
+    assert len(set(JOINT_OF_PART.values())) == len(JOINT_OF_PART)
+    assert set(VIRTUAL_MARKER) == set(JOINT_OF_PART.values())
+    assert len(set(VIRTUAL_MARKER.values())) == len(VIRTUAL_MARKER)
+    assert joint_name("shank_r") == "knee_r" and VIRTUAL_MARKER["knee_r"] == "RKJC"
+    assert joint_name("pelvis") == "" and joint_name("") == ""
+
+
+def test_an_anatomy_knows_left_and_rejects_unknown_parts():
+    a = Anatomy(("pelvis", "thigh_l", ""), [0.9, 0.8, 0.0], True, up=[0, 0, 1], front=[1, 0, 0])
+    np.testing.assert_array_equal(a.left, [0, 1, 0])  # up x front
+    assert a.segment_of("thigh_l") == 1 and a.segment_of("thigh_r") is None
+    with pytest.raises(jaxskel.InputError, match="unknown body parts"):
+        Anatomy(("pelvis", "femur"), [1, 1], True, up=[0, 0, 1], front=[1, 0, 0])
+    with pytest.raises(jaxskel.InputError, match="one value per segment"):
+        Anatomy(("pelvis", "thigh_l"), [1], True, up=[0, 0, 1], front=[1, 0, 0])
