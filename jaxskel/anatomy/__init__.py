@@ -6,10 +6,11 @@ and the motion.
 from __future__ import annotations
 
 from ._vocabulary import (
-    JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, joint_name, mirror, side_of,
+    JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, is_ancestor, joint_between, joint_name, mirror,
+    side_of,
 )
 
 __all__ = [
-    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "joint_name", "mirror",
-    "side_of",
+    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
+    "joint_name", "mirror", "side_of",
 ]

@@ -21,14 +21,15 @@ human at all, and the body's up and front directions in the recording's frame.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
 from .._errors import InputError
 
 __all__ = [
-    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "joint_name", "mirror",
-    "side_of",
+    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
+    "joint_name", "mirror", "side_of",
 ]
 
 #: Every part a segment can be named, proximal before distal.
@@ -87,6 +88,29 @@ def joint_name(child_part: str) -> str:
     return JOINT_OF_PART.get(child_part, "")
 
 
+def is_ancestor(part: str, of: str) -> bool:
+    """Whether ``part`` lies on the path from ``of`` to the pelvis in :data:`PARENT_PART`
+    (``of`` itself excluded)."""
+    up = PARENT_PART.get(of, "")
+    while up:
+        if up == part:
+            return True
+        up = PARENT_PART[up]
+    return False
+
+
+def joint_between(part_a: str, part_b: str) -> str:
+    """The joint of two named parts one of which is proximal to the other in the human tree,
+    named after the distal one (a thorax on the pelvis, no abdomen between: ``thoracic``);
+    ``""`` where either is unnamed or neither is proximal to the other."""
+    if part_a and part_b:
+        if is_ancestor(part_a, part_b):
+            return joint_name(part_b)
+        if is_ancestor(part_b, part_a):
+            return joint_name(part_a)
+    return ""
+
+
 @dataclasses.dataclass(frozen=True)
 class Anatomy:
     """The body parts of a fitted skeleton's segments.
@@ -135,3 +159,15 @@ class Anatomy:
     def segment_of(self, part: str) -> int | None:
         """The segment named ``part``, or None."""
         return self.parts.index(part) if part in self.parts else None
+
+    def segment_names(self, fallback: Sequence[str]) -> tuple[str, ...]:
+        """Each segment's part, or its ``fallback`` name where the part is not identified."""
+        if len(fallback) != len(self.parts):
+            raise InputError(f"{len(fallback)} fallback names for {len(self.parts)} segments")
+        return tuple(p or f for p, f in zip(self.parts, fallback))
+
+    def joint_names(self, edges: np.ndarray, fallback: Sequence[str]) -> tuple[str, ...]:
+        """(J,) each tree joint's anatomical name (:func:`joint_between` of its two segments'
+        parts: ``knee_l``), or its ``fallback`` name where the parts do not name it."""
+        pairs = np.asarray(edges, int).reshape(-1, 2).tolist()
+        return tuple(joint_between(self.parts[a], self.parts[b]) or f for (a, b), f in zip(pairs, fallback))

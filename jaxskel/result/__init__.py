@@ -4,6 +4,7 @@ export and its OpenSim model export.
 
 from __future__ import annotations
 
+from ._anatomy_file import load_anatomy
 from ._bvh import BvhData, export_bvh, read_bvh
 from ._format import ResultFile, SCHEMA_VERSION, load_result
 from ._osim import export_osim, opensim_frame, opensim_names, to_opensim_frame
@@ -20,5 +21,5 @@ from ._summary import (
 
 __all__ = [
     "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "TrackedTrial", "export_bvh", "export_osim",
-    "load_result", "load_skeleton", "opensim_frame", "opensim_names", "read_bvh", "to_opensim_frame",
+    "load_anatomy", "load_result", "load_skeleton", "opensim_frame", "opensim_names", "read_bvh", "to_opensim_frame",
 ]

@@ -35,6 +35,8 @@ Schema version 1 (documented in the README, "Result file"):
 * ``/skeleton`` (every field of the rigid skeleton, read back exactly by
   :func:`jaxskel.load_skeleton`, :mod:`jaxskel.result._skeleton_file`; ``bone_uncertainty`` (B,)
   beside ``bone_lengths``) and ``/motion`` (when fitted, see docs/result-format.md);
+* ``/anatomy`` (when the fit named the body): ``segment_part``, ``segment_confidence``,
+  ``notes``, attributes ``humanoid``, ``up``, ``front`` (:mod:`jaxskel.result._anatomy_file`);
 * ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
   ``timings`` as attributes, the cleaning report (``cleaning/duplicates`` and
   ``duplicate_of``: labels merged as copies of another), settings.
@@ -58,6 +60,7 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ..io import atomic_output, check_output, input_sources, put, refuse_input
+from ._anatomy_file import write_anatomy
 from ._skeleton_file import write_skeleton
 
 __all__ = [
@@ -232,6 +235,8 @@ def save_result(
                 write_skeleton(f.create_group("skeleton"), result.skeleton, result.segment_names)
             if result.motion is not None:
                 write_motion(f.create_group("motion"), result.motion)
+            if result.anatomy is not None:
+                write_anatomy(f.create_group("anatomy"), result.anatomy)
 
             d = f.create_group("diagnostics")
             pc = topo.pair_costs

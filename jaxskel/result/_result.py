@@ -10,6 +10,7 @@ import numpy as np
 
 from .._errors import InputError
 from .._math.frames import cut_frames
+from ..anatomy import Anatomy
 from ..clean import CleaningReport
 from ..io import Trial
 from ..joints import Topology
@@ -47,6 +48,11 @@ class SkeletonResult:
         Seconds per stage.
     settings
         The arguments used.
+    anatomy
+        The body part of every segment (:class:`jaxskel.anatomy.Anatomy`), or ``None`` when
+        the fit did not name the body (``anatomy=False``, no rigid skeleton). Where it names
+        a segment's part, :attr:`segment_names` holds the part (``thigh_l``) and
+        :meth:`joint_name` the joint (``knee_l``).
     """
 
     input_labels: tuple[str, ...]
@@ -61,6 +67,7 @@ class SkeletonResult:
     trial_bounds: tuple[tuple[int, int], ...]
     timings: dict[str, float]
     settings: dict[str, Any]
+    anatomy: Anatomy | None = None
 
     # ------------------------------------------------------------- derived
     @property
@@ -189,8 +196,11 @@ class SkeletonResult:
         return near_ties(self.trial, self.segmentation, self.topology, z=z)
 
     def joint_name(self, j: int) -> str:
-        p, c = self.edges[j]
-        return f"{self.segment_names[p]}-{self.segment_names[c]}"
+        """Joint ``j``'s anatomical name (``knee_l``) where :attr:`anatomy` gives its two
+        segments' parts, else ``parent-child`` from :attr:`segment_names`."""
+        p, c = (int(v) for v in self.edges[j])
+        fallback = f"{self.segment_names[p]}-{self.segment_names[c]}"
+        return self.anatomy.joint_names([[p, c]], (fallback,))[0] if self.anatomy is not None else fallback
 
     def summary(self) -> str:
         """Segments with their markers, joints with their costs, how the tree was chosen and

@@ -47,3 +47,23 @@ def test_an_anatomy_knows_left_and_rejects_unknown_parts():
         Anatomy(("pelvis", "femur"), [1, 1], True, up=[0, 0, 1], front=[1, 0, 0])
     with pytest.raises(jaxskel.InputError, match="one value per segment"):
         Anatomy(("pelvis", "thigh_l"), [1], True, up=[0, 0, 1], front=[1, 0, 0])
+
+
+def test_joints_are_named_after_the_distal_part_of_either_edge_direction():
+    from jaxskel.anatomy import joint_between
+
+    assert joint_between("thigh_l", "shank_l") == joint_between("shank_l", "thigh_l") == "knee_l"
+    assert joint_between("pelvis", "thorax") == "thoracic"  # no abdomen segment between them
+    assert joint_between("thorax", "upper_arm_r") == "shoulder_r"  # no clavicle segment
+    assert joint_between("thigh_l", "thigh_r") == ""  # siblings: neither is proximal
+    assert joint_between("shank_l", "") == ""
+
+
+def test_an_anatomy_names_segments_and_joints_where_it_knows_the_parts():
+    anatomy = Anatomy(parts=("pelvis", "thigh_r", "", "shank_r"), confidence=[1, 1, 0, 0.5], humanoid=True,
+                      up=[0, 0, 1], front=[1, 0, 0])
+    assert anatomy.segment_names(("W", "RTH", "X", "RSH")) == ("pelvis", "thigh_r", "X", "shank_r")
+    edges = np.array([[0, 1], [3, 1], [0, 2]])  # a tree rooted at the shank orders the knee's edge distal-first
+    assert anatomy.joint_names(edges, ("a", "b", "c")) == ("hip_r", "knee_r", "c")
+    with pytest.raises(jaxskel.InputError, match="fallback"):
+        anatomy.segment_names(("W",))
