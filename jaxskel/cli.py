@@ -635,6 +635,10 @@ def _info(path: Path, args: argparse.Namespace) -> int:
             print(f"  {len(r.markers.labels)} input markers, {len(r.segments.names)} segments, "
                   f"{len(r.topology.edges)} joints, root {r.segments.names[root]} (segment {root})")
             print(f"  segments: {', '.join(r.segments.names)}")
+            if "anatomy" in r:
+                parts = [str(p) for p in r.anatomy.segment_part]
+                print(f"  body: {'human' if r.anatomy.attrs['humanoid'] else 'not human'}, "
+                      f"{sum(map(bool, parts))} of {len(parts)} segments named")
             print(f"  groups: {', '.join(r.keys())}")
             return 0
     trial = jaxskel.load(path, **_load_kwargs(path, args))

@@ -42,7 +42,8 @@ from .._math.frames import cut_frames
 from .._runtime.precision import float64_scope
 from ..clean import clean, lowpass_markers
 from ..io import Trial, check_load_arguments, check_output, refuse_input
-from ..result import TrackedTrial, load_skeleton
+from ..anatomy import Anatomy
+from ..result import TrackedTrial, load_anatomy, load_skeleton
 from ..skeleton import Skeleton, inverse_kinematics, measured_rms, segment_members, solver_shape
 from ._batch import BatchResult
 from ._local import Item, TrialOutcome, failed
@@ -230,7 +231,7 @@ def _prepare(item: Item, skeleton: Skeleton, options: FitOptions) -> _Prepared:
     return _Prepared(item, ordered, filtered, lowpass_hz, loaded, match, lost, report, caught, timings)
 
 
-def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: str, settings: dict[str, Any],
+def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: Calibration, settings: dict[str, Any],
             ik_seconds: float) -> tuple[TrackedTrial, list[Caught]]:
     """The trial's TrackedTrial from its cut of the group's motion, and its warnings."""
     measured = np.asarray(prep.trial.positions)
@@ -247,7 +248,8 @@ def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: str, 
         name=prep.item.name, trial=prep.trial, input_labels=prep.input_labels, skeleton=skeleton, motion=motion,
         segment_posed=posed, missing_markers=prep.match.missing + tuple(prep.dropped),
         extra_markers=prep.match.extra, matched=dict(prep.match.matched), cleaning=prep.cleaning,
-        calibration=calibration, timings={**prep.timings, "ik": ik_seconds}, settings=settings,
+        calibration=calibration.path, anatomy=calibration.anatomy, timings={**prep.timings, "ik": ik_seconds},
+        settings=settings,
     )
     caught = list(prep.caught)
     if prep.match.missing or prep.dropped:
@@ -295,17 +297,26 @@ def _solve_group(preps: Sequence[_Prepared], skeleton: Skeleton) -> tuple[list[A
 
 
 # ------------------------------------------------------------------ track
-def _skeleton_of(skeleton: Any) -> tuple[Skeleton, str]:
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """Where a tracked take's skeleton came from: its result file (``""``: given in memory)
+    and the body it named (``None``: none named), which every take inherits."""
+
+    path: str = ""
+    anatomy: Anatomy | None = None
+
+
+def _skeleton_of(skeleton: Any) -> tuple[Skeleton, Calibration]:
     if isinstance(skeleton, Skeleton):
-        return skeleton, ""
+        return skeleton, Calibration()
     if isinstance(skeleton, (str, os.PathLike)):
-        return load_skeleton(skeleton), os.path.abspath(skeleton)
+        return load_skeleton(skeleton), Calibration(os.path.abspath(skeleton), load_anatomy(skeleton))
     from ..result import SkeletonResult
 
     if isinstance(skeleton, SkeletonResult):
         if skeleton.skeleton is None:
             raise InputError("this result has no rigid skeleton (fitted with rigid=False); fit with the defaults")
-        return skeleton.skeleton, ""
+        return skeleton.skeleton, Calibration(anatomy=skeleton.anatomy)
     raise InputError(
         f"track takes a Skeleton, a SkeletonResult or the path of a result file, got {type(skeleton).__name__}"
     )
@@ -351,14 +362,14 @@ def _items(trials: Any, units: str | None, up_axis: str | None) -> list[Item]:
     return items
 
 
-def _outputs(items: list[Item], outdir: Path, exports: Sequence[str], overwrite: bool, calibration: str) -> list[Item]:
+def _outputs(items: list[Item], outdir: Path, exports: Sequence[str], overwrite: bool, calibration: Calibration) -> list[Item]:
     """Each item with its result file ``outdir/<name>.h5``, after checking every output
     before any work: one file per name, none an input or the calibration, none an existing
     file without ``overwrite``, all writable."""
     taken: dict[str, str] = {}
     inputs = [str(v) for it in items for v in it.inputs if isinstance(v, (str, os.PathLike))]
-    if calibration:
-        inputs.append(calibration)
+    if calibration.path:
+        inputs.append(calibration.path)
     out = []
     for it in items:
         paths = [outdir / f"{it.name}.h5"] + [outdir / f"{it.name}{EXPORTS[e]}" for e in exports]
@@ -497,7 +508,7 @@ def track(
     return BatchResult([outcomes[it.index] for it in items], None, time.perf_counter() - t_start)
 
 
-def _track_local(items: list[Item], skeleton: Skeleton, calibration: str, options: FitOptions,
+def _track_local(items: list[Item], skeleton: Skeleton, calibration: Calibration, options: FitOptions,
                  exports: Sequence[str], overwrite: bool, batch_size: int, keep: bool,
                  done: Callable[[Item, TrialOutcome], None]) -> None:
     """Track ``items`` in this process: prepare each, pose them in groups, finish and write each."""
@@ -564,7 +575,7 @@ def _pack_skeleton(skeleton: Skeleton) -> dict[str, Any]:
     return state
 
 
-def _track_group(state: dict[str, Any], calibration: str, packed: list[tuple[int, str, Any, str, tuple]],
+def _track_group(state: dict[str, Any], calibration: Calibration, packed: list[tuple[int, str, Any, str, tuple]],
                  options: FitOptions, exports: list[str], overwrite: bool, batch_size: int) -> list[tuple]:
     """Worker task: track a group of trials in-process and write their files; return a row,
     the error and the packed warnings per trial."""
@@ -587,7 +598,7 @@ def _track_group(state: dict[str, Any], calibration: str, packed: list[tuple[int
     return rows
 
 
-def _track_distributed(items: list[Item], skeleton: Skeleton, calibration: str, options: FitOptions,
+def _track_distributed(items: list[Item], skeleton: Skeleton, calibration: Calibration, options: FitOptions,
                        exports: Sequence[str], overwrite: bool, batch_size: int, scheduler: Any,
                        done: Callable[[Item, TrialOutcome], None]) -> None:
     """Track ``items`` on a Dask cluster: one group of trials per task (at most ``batch_size``,

@@ -22,6 +22,7 @@ def summary_text(result: Any) -> str:
     10 cm reads ``undetermined``, with the motion that would fix it, and so does the
     bound of a bone ending at it (:mod:`jaxskel.result._summary`)."""
     lines = [f"{result.n_segments} segments, {len(result.edges)} joints, root {result.segment_names[result.topology.root]}"]
+    lines += _body_lines(result.anatomy)
     seg = result.segmentation
     gaps = ", ".join(f"{k} ({gap:.3f})" for k, gap in seg.count_candidates())
     rule = {
@@ -97,6 +98,27 @@ def summary_text(result: Any) -> str:
             )
     return "\n".join(lines)
 
+def _body_lines(anatomy: Any) -> list[str]:
+    """The summary's named-body line (none where the fit did not name the body)."""
+    if anatomy is None:
+        return []
+    if not anatomy.humanoid:
+        return ["body: not human, so the segments keep their markers' names"
+                + (f" ({anatomy.notes[0]})" if anatomy.notes else "")]
+    named = [c for p, c in zip(anatomy.parts, anatomy.confidence) if p]
+    low = f", confidence {min(named):.2f}-{max(named):.2f}" if named else ""
+    return [f"body: human, {len(named)} of {len(anatomy.parts)} segments named{low}; "
+            f"up {_direction(anatomy.up)}, facing {_direction(anatomy.front)} at the rest pose"]
+
+
+def _direction(v: Any) -> str:
+    """A unit vector in words: its nearest signed axis (``+z``) and how far it leans from it."""
+    v = np.asarray(v, float)
+    k = int(np.argmax(np.abs(v)))
+    lean = np.degrees(np.arccos(min(1.0, abs(v[k]) / max(np.linalg.norm(v), 1e-12))))
+    return f"{'+-'[int(v[k] < 0)]}{'xyz'[k]}" + (f" ({lean:.0f} deg off)" if lean >= 10 else "")
+
+
 def _joint_lines(result: Any, anchored: dict[str, Any], resolution: np.ndarray) -> list[str]:
     """The summary's joints table: cost, uncertainty, steps, converged, sweep, resolution."""
     from ..joints import MIN_EXERCISE_DEG
@@ -105,7 +127,7 @@ def _joint_lines(result: Any, anchored: dict[str, Any], resolution: np.ndarray) 
     names = [result.joint_name(j) for j in range(len(result.edges))]
     width = max(map(len, names), default=0)
     t = result.topology
-    lines = ["joints (parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
+    lines = ["joints (anatomical or parent-child): cost [mm^2], uncertainty [mm], steps, converged, sweep [deg], resolution [mm]"]
     for j, name in enumerate(names):
         lines.append(
             f"  {name:>{width}}: {t.joint_cost[j] * 1e6:9.3f}  {t.uncertainty[j] * 1000:7.1f}  "

@@ -6,7 +6,7 @@ A tracked trial's result file has the fit's layout where the two share a meaning
 the skeleton's markers, ``positions`` the cleaned trial in that order, ``segment``,
 ``missing`` and ``extra``), ``/segments/names``, ``/topology`` (``edges``, ``root``),
 ``/skeleton`` (the calibration's, bit for bit, so :func:`jaxskel.load_skeleton` reads it back
-from here too), ``/motion`` (with ``segment_posed``) and ``/diagnostics``.
+from here too), ``/anatomy`` (the calibration's named body, where it has one), ``/motion`` (with ``segment_posed``) and ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from ..anatomy import Anatomy
 from ..clean import CleaningReport
 from ..io import Trial, atomic_output, check_output, input_sources, put, refuse_input
 
@@ -61,6 +62,9 @@ class TrackedTrial:
         :class:`jaxskel.clean.CleaningReport` of the trial (``None`` without cleaning).
     calibration
         Where the skeleton came from (its result file), ``""`` for one given in memory.
+    anatomy
+        The calibration's named body (:class:`jaxskel.anatomy.Anatomy`), ``None`` where it
+        named none (or the skeleton was given without its result).
     timings, settings
         Seconds per stage; the settings used.
     """
@@ -78,6 +82,7 @@ class TrackedTrial:
     calibration: str
     timings: dict[str, float]
     settings: dict[str, Any]
+    anatomy: Anatomy | None = None
 
     @property
     def n_frames(self) -> int:
@@ -141,6 +146,7 @@ class TrackedTrial:
 def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
     """Write ``tracked`` to ``path`` (``.h5``; never over an input or, without ``overwrite``, a file)."""
     from ._format import jsonable, write_cleaning, write_motion, write_root_attrs
+    from ._anatomy_file import write_anatomy
     from ._skeleton_file import write_skeleton
 
     path = check_output(path, "result")
@@ -173,6 +179,8 @@ def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwri
         put(g, "edges", np.asarray(skeleton.edges).reshape(-1, 2))
         put(g, "root", np.int64(skeleton.root))
         write_skeleton(f.create_group("skeleton"), skeleton)
+        if tracked.anatomy is not None:
+            write_anatomy(f.create_group("anatomy"), tracked.anatomy)
         m = f.create_group("motion")
         write_motion(m, tracked.motion)
         put(m, "segment_posed", np.asarray(tracked.segment_posed))
