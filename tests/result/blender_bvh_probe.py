@@ -34,6 +34,7 @@ def main(path: str, frames: list[int]) -> dict:
         "bones": [b.name for b in bones],
         "parents": [b.parent.name if b.parent else None for b in bones],
         "rest_heads": [world(arm, b.head_local) for b in bones],
+        "rest_tails": [world(arm, b.tail_local) for b in bones],
         "frame_range": [float(v) for v in action.frame_range],
         "heads": {},
     }
