@@ -31,7 +31,8 @@ def _clean_env() -> dict[str, str]:
 
 def _has_bpy(python: Path | str) -> bool:
     try:
-        done = subprocess.run([str(python), "-c", "import bpy"], capture_output=True, env=_clean_env(), timeout=300)
+        done = subprocess.run([str(python), "-c", "import bpy"], capture_output=True, env=_clean_env(), timeout=300,
+                              check=False)
     except (OSError, subprocess.TimeoutExpired):
         return False
     return done.returncode == 0
@@ -66,7 +67,7 @@ def _build(venv: Path, version: str) -> None:
             return
         for cmd in ([sys.executable, "-m", "venv", "--clear", str(venv)],
                     [str(_venv_python(venv)), "-m", "pip", "install", "--quiet", f"bpy=={version}"]):
-            done = subprocess.run(cmd, capture_output=True, text=True, env=_clean_env())
+            done = subprocess.run(cmd, capture_output=True, text=True, env=_clean_env(), check=False)
             if done.returncode != 0:
                 pytest.fail(_instructions(f"`{' '.join(cmd)}` failed:\n{(done.stdout + done.stderr)[-3000:]}"),
                             pytrace=False)

@@ -250,7 +250,7 @@ OPENSIM_BODIES = ("pelvis", "torso", "head", "humerus_l", "radius_l", "hand_l", 
 def test_a_humanoid_takes_opensim_body_and_joint_names(truth_body, tmp_path):
     """gait2392 / Rajagopal body names, joints named after the joint (hip_r, knee_r, ...), in
     the full body's segment order; a body that is not human keeps its segment names."""
-    skeleton, motion, truth = truth_body
+    skeleton, _, truth = truth_body
     assert truth.segment_names[:4] == ("pelvis", "torso", "head", "l_upperarm")
     named = dataclasses.replace(skeleton, segment_names=truth.segment_names)
     model = ET.parse(export_osim(named, tmp_path / "h.osim", anatomy=_anatomy(truth))).getroot().find("Model")
@@ -258,10 +258,12 @@ def test_a_humanoid_takes_opensim_body_and_joint_names(truth_body, tmp_path):
     joints = [j.get("name") for j in model.find("JointSet/objects")]
     child = {j.get("name"): j.find("frames")[1].find("socket_parent").text for j in model.find("JointSet/objects")}
     assert joints[0] == "ground-pelvis"
-    for joint, body in (("hip_r", "femur_r"), ("knee_l", "tibia_l"), ("ankle_r", "calcn_r"), ("shoulder_l", "humerus_l"),
-                        ("elbow_r", "radius_r"), ("wrist_l", "hand_l"), ("neck", "head"), ("thoracic", "torso")):
+    for joint, body in (("hip_r", "femur_r"), ("knee_l", "tibia_l"), ("ankle_r", "calcn_r"),
+                        ("shoulder_l", "humerus_l"), ("elbow_r", "radius_r"), ("wrist_l", "hand_l"), ("neck", "head"),
+                        ("thoracic", "torso")):
         assert child[joint] == f"/bodyset/{body}"
-    assert {m.find("socket_parent_frame").text for m in model.iter("Marker")} == {f"/bodyset/{b}" for b in OPENSIM_BODIES}
+    parents = {m.find("socket_parent_frame").text for m in model.iter("Marker")}
+    assert parents == {f"/bodyset/{b}" for b in OPENSIM_BODIES}
     plain = ET.parse(export_osim(named, tmp_path / "n.osim", anatomy=_anatomy(truth, humanoid=False))).getroot()
     assert tuple(b.get("name") for b in plain.find("Model").iter("Body")) == truth.segment_names
     with pytest.raises(InputError, match="anatomy names"):
