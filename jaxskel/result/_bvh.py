@@ -179,12 +179,11 @@ def bvh_rest_orientations(skeleton: Skeleton, anatomy: Anatomy | None, frame: np
     parts = anatomy.parts
     origin, centroid = _node_origins(skeleton), _marker_centroids(skeleton)
     parent = skeleton.parent
-    for s in _tree_order(skeleton):
-        rest[s] = rest[parent[s]] if parent[s] >= 0 else np.eye(3)
+    for s in _tree_order(skeleton):  # parents first: an unnamed segment takes its parent's
+        if parent[s] >= 0 and parts[s] != "pelvis":
+            rest[s] = rest[parent[s]]
         direction = _T_DIRECTION.get(parts[s])
-        if parts[s] == "pelvis":
-            rest[s] = np.eye(3)
-        if direction is None:
+        if direction is None:  # the pelvis, the root, an unnamed segment
             continue
         d = frame @ _bone(skeleton, parts, s, origin, centroid)
         if not np.isfinite(d).all() or np.linalg.norm(d) < 1e-9:
