@@ -14,14 +14,15 @@ import bvh
 import numpy as np
 import pytest
 from anatomy.truth import SYNTH_PART
-from helpers import truth_motion, truth_skeleton
+from helpers import random_rotation, truth_motion, truth_skeleton
+from scipy.spatial.transform import Rotation
 
 from jaxskel import InputError, synth
 from jaxskel.anatomy import Anatomy
 from jaxskel.io import rotation_between_axes
 from jaxskel.result import export_bvh, read_bvh
 from jaxskel.result._bvh import bvh_frame
-from jaxskel.result._export_names import MAX_NAME, ascii_names
+from jaxskel.result._export_names import MAX_NAME, ascii_names, part_names
 from jaxskel.segment import names_from_markers
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
@@ -181,6 +182,51 @@ def test_a_humanoid_is_written_as_a_named_t_pose_with_its_fitted_bones(tmp_path,
     for j, (p, ch) in enumerate(skeleton.edges.tolist()):
         length = np.linalg.norm(skeleton.joint_offsets[j, 0] - origin[p])
         assert np.linalg.norm(data.offsets[data.names.index(mixamo[ch])]) == pytest.approx(100.0 * length, abs=1e-6)
+
+
+def _turned(skeleton, motion, q):
+    """The same skeleton and motion in a lab frame turned by ``q`` (the rest frame's
+    world-aligned segment frames turn with it: ``R_s -> q R_s q^T``)."""
+    sk = dataclasses.replace(skeleton, joint_offsets=skeleton.joint_offsets @ q.T,
+                             marker_offsets=skeleton.marker_offsets @ q.T)
+    rot = Rotation.from_quat(motion.rotations.reshape(-1, 4), scalar_first=True).as_matrix()
+    quats = Rotation.from_matrix(q @ rot @ q.T).as_quat(scalar_first=True).reshape(motion.rotations.shape)
+    return sk, dataclasses.replace(
+        motion, rotations=quats, root_position=motion.root_position @ q.T,
+        segment_translations=motion.segment_translations @ q.T, joint_positions=motion.joint_positions @ q.T,
+        fitted_markers=motion.fitted_markers @ q.T)
+
+
+def test_the_t_posed_file_does_not_depend_on_the_lab_frame(tmp_path, full_body):
+    """Turning the whole recording (and the anatomy's up and front with it) writes the same
+    BVH: its axes are the body's."""
+    skeleton, motion, truth = full_body
+    anatomy = _anatomy(truth)
+    q = random_rotation(3)
+    sk, mo = _turned(skeleton, motion, q)
+    np.testing.assert_allclose(mo.joint_positions[7], motion.joint_positions[7] @ q.T)
+    turned = dataclasses.replace(anatomy, up=q @ anatomy.up, front=q @ anatomy.front)
+    one = read_bvh(export_bvh(skeleton, motion, tmp_path / "a.bvh", anatomy=anatomy))
+    two = read_bvh(export_bvh(sk, mo, tmp_path / "b.bvh", anatomy=turned))
+    np.testing.assert_allclose(two.offsets, one.offsets, atol=1e-7)
+    np.testing.assert_allclose(two.world_positions(), one.world_positions(), atol=1e-6)
+
+
+def test_a_partial_body_t_poses_what_is_named(tmp_path, full_body):
+    """Unnamed upper arms turn with the thorax; the named forearms and hands are still level,
+    the legs straight down, and every frame still at the motion's joints."""
+    skeleton, motion, truth = full_body
+    parts = tuple("" if p.startswith("upper_arm") else p for p in _anatomy(truth).parts)
+    anatomy = _anatomy(truth, parts=parts)
+    data = read_bvh(export_bvh(skeleton, motion, tmp_path / "p.bvh", anatomy=anatomy, labels=truth.segment_names))
+    assert "l_upperarm" in data.names and "LeftForeArm" in data.names
+    names = ascii_names(part_names(anatomy, truth.segment_names, None))
+    assert names[3] == "l_upperarm" and names[4] == "LeftForeArm"
+    _check_round_trip(skeleton, motion, names, data, 100.0, FACING)
+    at = dict(zip(data.names, _rest(data)))
+    assert at["LeftForeArm"][1] == pytest.approx(at["LeftHand"][1], abs=1e-9)
+    assert at["LeftHand"][0] - at["LeftForeArm"][0] > 20.0
+    np.testing.assert_allclose(at["RightFoot"][[0, 2]], at["RightUpLeg"][[0, 2]], atol=1e-9)
 
 
 def test_other_naming_conventions(tmp_path, full_body):
