@@ -256,7 +256,7 @@ def test_names_are_distinct_ascii_identifiers():
 
 
 def test_centimetres_and_other_rotation_order_on_a_random_tree(tmp_path):
-    skeleton, motion, truth = _truth_skeleton_and_motion(synth.random_tree(8, seed=5), seed=5)
+    skeleton, motion, _ = _truth_skeleton_and_motion(synth.random_tree(8, seed=5), seed=5)
     names = [f"part {i}" for i in range(skeleton.n_segments)]  # spaces are not BVH-safe
     path = export_bvh(
         skeleton, motion, tmp_path / "tree.bvh", units="cm", rotation_order="XYZ", labels=names
