@@ -2,20 +2,43 @@
 
 Mapping (a host-side edge of jaxskel; numpy and scipy only):
 
-* Each segment is one BVH joint, named after the segment (by default from its markers'
-  labels, :mod:`jaxskel.segment._names`); the root segment is ``ROOT``.
-  Its node frame is the segment frame moved to the segment's proximal joint (for the
-  root: the segment origin, the centroid of its markers), axes unchanged.
-* ``OFFSET`` of a joint is the position of its proximal joint relative to its parent's
-  node origin in the rest pose, in the parent frame: ``o_j0 - o_prox(parent),1``.
-  Segment axes are world-aligned at the rest frame (:mod:`jaxskel.skeleton._rigid_fit`), so the BVH
-  rest pose (all channels zero) is the subject's posture in that frame.
-* The root has position channels (the world position of its node origin) and every
-  joint three rotation channels, by default ``Zrotation Xrotation Yrotation``: the
-  local rotation ``R_parent^T R_segment = R_Z(a) R_X(b) R_Y(c)`` (intrinsic, in channel
-  order), in degrees.
-* A leaf segment ends in an ``End Site`` at the centroid of its markers.
-* Lengths in metres (``units="m"``) or centimetres (``units="cm"``).
+* **Axes: Y up, facing +Z.** A lab point ``p`` is written as ``C p`` (:func:`bvh_frame`).
+  With an :class:`jaxskel.anatomy.Anatomy`, ``C`` has rows ``(left, up, front)``
+  (``front`` made orthogonal to ``up``): the body's up is +Y, its front +Z and its left
+  +X, the frame MotionBuilder, Maya and Blender's importer expect. Without one, ``C`` is
+  the quarter (or half) turn taking the recording's ``up_axis`` to +Y
+  (:func:`jaxskel.io.rotation_between_axes`; for ``"z"``: ``(x, y, z) -> (x, z, -y)``),
+  the facing kept; ``up_axis="unknown"`` keeps the lab axes.
+* **Joints.** Each segment is one BVH joint at its proximal joint (the root segment: at
+  its origin, the centroid of its markers). A leaf ends in an ``End Site`` at the
+  centroid of its markers.
+* **Rest pose** (every channel zero). Each segment has a rest orientation ``T_s`` (a
+  rotation of BVH space) and ``OFFSET`` of the joint of child ``c`` is
+  ``T_p C (o_j,0 - n_p)``: its joint in the parent frame, less the parent's node origin
+  ``n_p``, turned by the parent's rest orientation. With a humanoid anatomy this is a
+  **T-pose**: each segment of a chain is turned by the smallest rotation taking its
+  bone (node origin to the next joint down the chain, or to its markers' centroid at the
+  chain's end) to the T-pose direction: abdomen, thorax and head +Y (up); clavicle,
+  upper arm, forearm and hand level sideways (left +X, right -X); thigh and shank -Y
+  (down); foot and toes forward (+Z, their bone's pitch kept: the heading turned to +Z).
+  The pelvis keeps its fitted orientation (``T = I``), a segment whose part is not
+  identified turns with its parent (``T_s = T_parent``). The bones keep their fitted
+  lengths. Without an anatomy, or for a body that is not human, ``T_s = I``: the
+  skeleton's default pose (every segment frame at its rest orientation, world-aligned in
+  the lab frame, :mod:`jaxskel.skeleton._rigid_fit`), turned by ``C``.
+* **Channels.** The root has position channels (``C`` times the world position of its
+  node origin) and every joint three rotation channels, by default ``Zrotation
+  Xrotation Yrotation``, in degrees: the local rotation ``L_s = G_p^T G_s`` with
+  ``G_s = C R_s C^T T_s^T`` (``R_s`` the segment's orientation, segment -> lab), as
+  intrinsic Euler angles in channel order, ``L = R_Z(a) R_X(b) R_Y(c)``. Then
+  ``G_p OFFSET_c = C R_p (o_j,0 - n_p)``: the BVH's joint positions in every frame are
+  ``C`` times the fit's joint positions, whatever the rest pose.
+* **Names** (:mod:`jaxskel.result._export_names`): Mixamo's bone names for a humanoid by
+  default (``Hips``, ``Spine``, ``LeftUpLeg``, ...), else the segment names; always
+  distinct ASCII identifiers (no ``+``, non-ASCII letters transliterated).
+* Lengths in centimetres (``units="cm"``, the default: the unit of Mixamo's, MotionBuilder's
+  and Maya's BVH files; Blender reads it at 100 units per metre unless imported with
+  ``global_scale=0.01``) or metres (``units="m"``).
 
 :func:`read_bvh` parses any BVH file (arbitrary channel sets and orders) into
 :class:`BvhData`, whose :meth:`BvhData.world_positions` is an independent forward
@@ -27,7 +50,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,27 +58,34 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import InputError
-from ..io import atomic_output, check_output
-from ..segment import safe_name
+from ..io import atomic_output, check_output, rotation_between_axes
+from ._export_names import ascii_names, part_names
 
 if TYPE_CHECKING:
+    from ..anatomy import Anatomy
     from ..skeleton import Motion, Skeleton
 
-__all__ = ["BvhData", "export_bvh", "read_bvh"]
+__all__ = ["BvhData", "bvh_frame", "bvh_rest_orientations", "export_bvh", "read_bvh"]
 
 _UNITS = {"m": 1.0, "cm": 100.0}
 _AXES = {"X": 0, "Y": 1, "Z": 2}
+_UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
-
-def _local_rotations(skeleton: Skeleton, rotations: np.ndarray) -> np.ndarray:
-    """(F, S, 4) global quaternions -> (F, S, 3, 3) rotations relative to the parent."""
-    rot = Rotation.from_quat(rotations.reshape(-1, 4), scalar_first=True).as_matrix()
-    rot = rot.reshape(*rotations.shape[:-1], 3, 3)
-    parent = skeleton.parent
-    local = rot.copy()
-    child = parent >= 0
-    local[:, child] = np.swapaxes(rot[:, parent[child]], -1, -2) @ rot[:, child]
-    return local
+#: The chains of the human tree, proximal to distal (``_s``: each side).
+_CHAINS: tuple[tuple[str, ...], ...] = (
+    ("pelvis", "abdomen", "thorax", "head"),
+    *((f"clavicle_{s}", f"upper_arm_{s}", f"forearm_{s}", f"hand_{s}") for s in "lr"),
+    *((f"thigh_{s}", f"shank_{s}", f"foot_{s}", f"toes_{s}") for s in "lr"),
+)
+_CHAIN_OF = {part: chain for chain in _CHAINS for part in chain}
+#: T-pose direction of each part's bone in BVH axes ("forward": +Z, pitch kept).
+_T_DIRECTION: dict[str, tuple[float, float, float] | str] = {"abdomen": (0, 1, 0), "thorax": (0, 1, 0),
+                                                            "head": (0, 1, 0)}
+for _s, _x in (("l", 1.0), ("r", -1.0)):
+    _T_DIRECTION.update({f"{p}_{_s}": (_x, 0, 0) for p in ("clavicle", "upper_arm", "forearm", "hand")})
+    _T_DIRECTION.update({f"thigh_{_s}": (0, -1, 0), f"shank_{_s}": (0, -1, 0), f"foot_{_s}": "forward",
+                         f"toes_{_s}": "forward"})
+del _s, _x
 
 
 def euler_angles(local: np.ndarray, order: str, *, degrees: bool = True) -> np.ndarray:
@@ -70,6 +100,115 @@ def euler_angles(local: np.ndarray, order: str, *, degrees: bool = True) -> np.n
         )
 
 
+def bvh_frame(anatomy: Anatomy | None = None, up_axis: str = "z") -> np.ndarray:
+    """The (3, 3) proper rotation ``C`` from the lab frame to the BVH's (module docstring):
+    rows ``(left, up, front)`` of ``anatomy``, else the turn of ``up_axis`` to +Y."""
+    if anatomy is None:
+        if up_axis == "unknown":
+            return np.eye(3)
+        if up_axis not in _UP_AXES:
+            raise InputError(f"up_axis must be one of {', '.join(_UP_AXES)} or 'unknown'; got {up_axis!r}")
+        return rotation_between_axes(up_axis, "y")
+    up, front = np.asarray(anatomy.up, float), np.asarray(anatomy.front, float)
+    if up.shape != (3,) or front.shape != (3,) or not (np.isfinite(up).all() and np.isfinite(front).all()):
+        raise InputError("the anatomy's up and front must be finite 3-vectors")
+    n_up = np.linalg.norm(up)
+    front = front - (front @ up) / max(n_up, 1e-300) ** 2 * up
+    if n_up < 1e-9 or np.linalg.norm(front) < 1e-6 * max(np.linalg.norm(anatomy.front), 1e-300):
+        raise InputError("the anatomy's up and front must be non-zero and not parallel")
+    up, front = up / n_up, front / np.linalg.norm(front)
+    return np.stack([np.cross(up, front), up, front])
+
+
+def _node_origins(skeleton: Skeleton) -> np.ndarray:
+    """(S, 3) each segment's BVH node origin in its own frame (its proximal joint; root: 0)."""
+    origin = np.zeros((skeleton.n_segments, 3))
+    origin[skeleton.edges[:, 1]] = skeleton.joint_offsets[:, 1]
+    return origin
+
+
+def _marker_centroids(skeleton: Skeleton) -> np.ndarray:
+    """(S, 3) centroid of each segment's markers in its frame (NaN without any)."""
+    seg = np.asarray(skeleton.marker_segment)
+    on = (seg >= 0) & np.isfinite(skeleton.marker_offsets).all(axis=1)
+    out = np.full((skeleton.n_segments, 3), np.nan)
+    for s in np.unique(seg[on]):
+        out[s] = skeleton.marker_offsets[on & (seg == s)].mean(axis=0)
+    return out
+
+
+def _tree_order(skeleton: Skeleton) -> list[int]:
+    """Segments depth-first from the root, children in joint order."""
+    children: list[list[int]] = [[] for _ in range(skeleton.n_segments)]
+    for p, c in skeleton.edges.tolist():
+        children[p].append(c)
+    order, stack = [], [int(skeleton.root)]
+    while stack:
+        s = stack.pop()
+        order.append(s)
+        stack.extend(reversed(children[s]))
+    return order
+
+
+def _bone(skeleton: Skeleton, parts: Sequence[str], s: int, origin: np.ndarray, centroid: np.ndarray) -> np.ndarray:
+    """Segment ``s``'s bone in its frame: node origin to the joint of its nearest child down
+    its chain, else to its markers' centroid (NaN where it has neither)."""
+    chain = _CHAIN_OF[parts[s]]
+    rank = chain.index(parts[s])
+    best, vector = len(chain), centroid[s] - origin[s]
+    for j, (p, c) in enumerate(skeleton.edges.tolist()):
+        if p == s and parts[c] in chain and rank < chain.index(parts[c]) < best:
+            best, vector = chain.index(parts[c]), skeleton.joint_offsets[j, 0] - origin[s]
+    return vector
+
+
+def _turn(d: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The smallest rotation (3, 3) taking direction ``d`` to direction ``target``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # one vector: scipy says the rotation is not unique
+        return Rotation.align_vectors(target[None], d[None])[0].as_matrix()
+
+
+def bvh_rest_orientations(skeleton: Skeleton, anatomy: Anatomy | None, frame: np.ndarray) -> np.ndarray:
+    """(S, 3, 3) each segment's rest orientation ``T_s`` in BVH axes (module docstring): the
+    T-pose for a humanoid ``anatomy``, else identities. ``frame`` is ``C`` (:func:`bvh_frame`)."""
+    n_seg = skeleton.n_segments
+    rest = np.broadcast_to(np.eye(3), (n_seg, 3, 3)).copy()
+    if anatomy is None or not anatomy.humanoid:
+        return rest
+    parts = anatomy.parts
+    origin, centroid = _node_origins(skeleton), _marker_centroids(skeleton)
+    parent = skeleton.parent
+    for s in _tree_order(skeleton):  # parents first: an unnamed segment takes its parent's
+        if parent[s] >= 0 and parts[s] != "pelvis":
+            rest[s] = rest[parent[s]]
+        direction = _T_DIRECTION.get(parts[s])
+        if direction is None:  # the pelvis, the root, an unnamed segment
+            continue
+        d = frame @ _bone(skeleton, parts, s, origin, centroid)
+        if not np.isfinite(d).all() or np.linalg.norm(d) < 1e-9:
+            continue
+        target = np.array([0.0, d[1], np.hypot(d[0], d[2])]) if direction == "forward" else np.asarray(direction, float)
+        rest[s] = _turn(d, target / np.linalg.norm(target))
+    return rest
+
+
+def _segment_names(
+    skeleton: Skeleton, labels: Sequence[str] | None, anatomy: Anatomy | None,
+    names: str | Mapping[str, str] | None,
+) -> tuple[str, ...]:
+    """The BVH joint names (ASCII, distinct) of every segment."""
+    n_seg = skeleton.n_segments
+    base = skeleton.names() if labels is None else tuple(str(v) for v in labels)
+    if len(base) != n_seg:
+        raise InputError(f"labels must be {n_seg} segment names, got {len(base)}")
+    if labels is not None and len(set(base)) != n_seg:
+        raise InputError(f"labels must be {n_seg} distinct segment names")
+    if anatomy is not None and len(anatomy.parts) != n_seg:
+        raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {n_seg}")
+    return ascii_names(part_names(anatomy, base, names))
+
+
 def export_bvh(
     skeleton: Skeleton,
     motion: Motion,
@@ -77,11 +216,16 @@ def export_bvh(
     *,
     rate: float | None = None,
     overwrite: bool = False,
-    units: str = "m",
+    units: str = "cm",
     labels: Sequence[str] | None = None,
     rotation_order: str = "ZXY",
+    anatomy: Anatomy | None = None,
+    names: str | Mapping[str, str] | None = None,
+    up_axis: str = "z",
 ) -> Path:
-    """Write a skeleton and its motion as a BVH file (atomically).
+    """Write a skeleton and its motion as a BVH file (atomically), Y up, facing +Z.
+
+    The mapping (axes, rest pose, channels, names) is in the module docstring.
 
     Parameters
     ----------
@@ -92,14 +236,26 @@ def export_bvh(
     rate
         Frames per second (default: ``motion.rate``).
     units
-        ``"m"`` or ``"cm"`` for offsets and root positions.
+        ``"cm"`` (default) or ``"m"`` for offsets and root positions.
     labels
         Segment names (default: :meth:`Skeleton.names`, the skeleton's segment names or
-        readable names from its marker labels); whitespace becomes ``_``.
+        readable names from its marker labels): the names under ``names="labels"`` and of
+        the segments whose part is not identified. Must be distinct.
     rotation_order
         Order of the three rotation channels, a permutation of ``"XYZ"``.
+    anatomy
+        The body parts of the skeleton's segments and the body's up and front
+        (:class:`jaxskel.anatomy.Anatomy`): they set the axes, and a humanoid's T-pose
+        rest and names. ``None``: the lab frame turned by ``up_axis``, the default pose as
+        rest, the segment names.
+    names
+        ``"mixamo"`` (the default for a humanoid), ``"jaxskel"`` (part names),
+        ``"opensim"`` (OpenSim body names), ``"labels"`` (the default otherwise) or a
+        mapping part -> name. Written as distinct ASCII identifiers.
+    up_axis
+        The lab's up axis (``x, y, z, -x, -y, -z`` or ``"unknown"``), used without an anatomy.
 
-    Returns the path written.
+    Returns the path written. Raises :class:`jaxskel.InputError` for a bad argument.
     """
     check_output(path, "bvh")  # before any work: a folder, not .bvh, an unwritable folder
     if units not in _UNITS:
@@ -115,74 +271,73 @@ def export_bvh(
     n_seg = skeleton.n_segments
     if motion.rotations.shape[1] != n_seg:
         raise InputError(f"motion has {motion.rotations.shape[1]} segments, the skeleton {n_seg}")
-    if labels is None:
-        labels = skeleton.names()
-    names = [safe_name(v) for v in labels]
-    if len(names) != n_seg or len(set(names)) != n_seg:
-        raise InputError(f"labels must be {n_seg} distinct segment names")
-    scale = _UNITS[units]
-    edges = skeleton.edges
-    proximal = np.full(n_seg, -1)
-    proximal[edges[:, 1]] = np.arange(skeleton.n_joints)
-    # Node origin of each segment in its own frame: its proximal joint (root: origin).
-    node_origin = np.zeros((n_seg, 3))
-    node_origin[edges[:, 1]] = skeleton.joint_offsets[:, 1]
-    children: list[list[int]] = [[] for _ in range(n_seg)]
-    for j, (p, c) in enumerate(edges.tolist()):
-        children[p].append(j)
-
-    def fmt(v: np.ndarray) -> str:
-        return " ".join(f"{float(a):.9g}" for a in v)
-
-    lines = ["HIERARCHY"]
-    rot_channels = " ".join(f"{a}rotation" for a in order)
-
-    def write(s: int, depth: int, offset: np.ndarray) -> None:
-        pad = "\t" * depth
-        kind = "ROOT" if s == skeleton.root else "JOINT"
-        lines.append(f"{pad}{kind} {names[s]}")
-        lines.append(f"{pad}{{")
-        lines.append(f"{pad}\tOFFSET {fmt(offset * scale)}")
-        if s == skeleton.root:
-            lines.append(f"{pad}\tCHANNELS 6 Xposition Yposition Zposition {rot_channels}")
-        else:
-            lines.append(f"{pad}\tCHANNELS 3 {rot_channels}")
-        for j in children[s]:
-            c = int(edges[j, 1])
-            write(c, depth + 1, skeleton.joint_offsets[j, 0] - node_origin[s])
-        if not children[s]:
-            on = (skeleton.marker_segment == s) & np.isfinite(skeleton.marker_offsets).all(axis=1)
-            tip = skeleton.marker_offsets[on].mean(axis=0) if on.any() else node_origin[s]
-            lines.append(f"{pad}\tEnd Site")
-            lines.append(f"{pad}\t{{")
-            lines.append(f"{pad}\t\tOFFSET {fmt((tip - node_origin[s]) * scale)}")
-            lines.append(f"{pad}\t}}")
-        lines.append(f"{pad}}}")
-
-    write(skeleton.root, 0, np.zeros(3))
-
-    # Channel values in hierarchy (depth-first) order.
-    dfs: list[int] = []
-
-    def visit(s: int) -> None:
-        dfs.append(s)
-        for j in children[s]:
-            visit(int(edges[j, 1]))
-
-    visit(skeleton.root)
-    angles = euler_angles(_local_rotations(skeleton, motion.rotations), order)  # (F, S, 3)
-    rot = Rotation.from_quat(motion.rotations[:, skeleton.root], scalar_first=True).as_matrix()
-    root_node = motion.root_position + np.einsum("fab,b->fa", rot, node_origin[skeleton.root])
-    columns = [root_node * scale] + [angles[:, s] for s in dfs]
-    values = np.concatenate(columns, axis=1)
+    joint_names = _segment_names(skeleton, labels, anatomy, names)
+    frame = bvh_frame(anatomy, up_axis)
+    rest = bvh_rest_orientations(skeleton, anatomy, frame)
+    hierarchy, dfs = _hierarchy(skeleton, joint_names, frame, rest, _UNITS[units], order)
+    values = _channels(skeleton, motion, frame, rest, dfs, _UNITS[units], order)
     n_frames = values.shape[0]
-    lines += ["MOTION", f"Frames: {n_frames}", f"Frame Time: {1.0 / float(rate):.9g}"]
+    lines = [*hierarchy, "MOTION", f"Frames: {n_frames}", f"Frame Time: {1.0 / float(rate):.9g}"]
     body = "\n".join(" ".join(f"{v:.10g}" for v in row) for row in values)
     text = "\n".join(lines) + "\n" + body + ("\n" if n_frames else "")
     target = Path(path)
     with atomic_output(target, overwrite) as tmp:
-        tmp.write_text(text, encoding="ascii")
+        tmp.write_text(text, encoding="ascii")  # every name is ASCII (ascii_names)
     return target
+
+
+def _hierarchy(
+    skeleton: Skeleton, names: Sequence[str], frame: np.ndarray, rest: np.ndarray, scale: float, order: str,
+) -> tuple[list[str], list[int]]:
+    """The HIERARCHY lines and the segments in their (depth-first) order."""
+    edges = skeleton.edges
+    origin, centroid = _node_origins(skeleton), _marker_centroids(skeleton)
+    children: list[list[int]] = [[] for _ in range(skeleton.n_segments)]
+    for j, p in enumerate(edges[:, 0].tolist()):
+        children[p].append(j)
+    rot_channels = " ".join(f"{a}rotation" for a in order)
+    lines, dfs = ["HIERARCHY"], []
+
+    def fmt(v: np.ndarray) -> str:
+        return " ".join(f"{float(a):.9g}" for a in v * scale)
+
+    def write(s: int, depth: int, offset: np.ndarray) -> None:
+        dfs.append(s)
+        pad = "\t" * depth
+        root = s == skeleton.root
+        lines.extend([f"{pad}{'ROOT' if root else 'JOINT'} {names[s]}", f"{pad}{{", f"{pad}\tOFFSET {fmt(offset)}"])
+        lines.append(f"{pad}\tCHANNELS 6 Xposition Yposition Zposition {rot_channels}" if root
+                     else f"{pad}\tCHANNELS 3 {rot_channels}")
+        for j in children[s]:
+            write(int(edges[j, 1]), depth + 1, rest[s] @ frame @ (skeleton.joint_offsets[j, 0] - origin[s]))
+        if not children[s]:
+            tip = centroid[s] if np.isfinite(centroid[s]).all() else origin[s]
+            lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{",
+                          f"{pad}\t\tOFFSET {fmt(rest[s] @ frame @ (tip - origin[s]))}", f"{pad}\t}}"])
+        lines.append(f"{pad}}}")
+
+    write(int(skeleton.root), 0, np.zeros(3))
+    return lines, dfs
+
+
+def _channels(
+    skeleton: Skeleton, motion: Motion, frame: np.ndarray, rest: np.ndarray, dfs: Sequence[int], scale: float,
+    order: str,
+) -> np.ndarray:
+    """(F, 6 + 3 (S - 1)) channel values in hierarchy order: ``G_s = C R_s C^T T_s^T``,
+    local ``G_p^T G_s`` as Euler angles; the root's node origin ``C (t + R n)``."""
+    quats = np.asarray(motion.rotations, float)
+    n_frames, n_seg = quats.shape[:2]
+    seg = Rotation.from_quat(quats.reshape(-1, 4), scalar_first=True).as_matrix().reshape(n_frames, n_seg, 3, 3)
+    world = frame @ seg @ frame.T @ np.swapaxes(rest, -1, -2)  # (F, S, 3, 3) G_s
+    parent = skeleton.parent
+    local = world.copy()
+    child = parent >= 0
+    local[:, child] = np.swapaxes(world[:, parent[child]], -1, -2) @ world[:, child]
+    angles = euler_angles(local, order)  # (F, S, 3)
+    root = int(skeleton.root)
+    root_node = np.asarray(motion.root_position, float) + seg[:, root] @ _node_origins(skeleton)[root]
+    return np.concatenate([root_node @ frame.T * scale, *(angles[:, s] for s in dfs)], axis=1)
 
 
 # --------------------------------------------------------------------- reading

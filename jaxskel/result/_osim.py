@@ -12,7 +12,11 @@ ElementTree only: OpenSim itself is not needed to write the file):
   skeleton's rest pose. Offsets ``o`` in a segment frame become ``C o`` in the body
   frame, and a segment's orientation ``R`` (segment -> lab) becomes ``C R C^T``
   (body -> ground). Lengths are metres, gravity ``(0, -9.80665, 0)``.
-* **Bodies.** One per segment, named after it. Mass and inertia are *placeholders*
+* **Bodies.** One per segment, named after it; with a humanoid
+  :class:`jaxskel.anatomy.Anatomy`, a segment whose part is identified takes OpenSim's
+  gait2392 / Rajagopal body name (:data:`jaxskel.result._export_names.OPENSIM_BODY`:
+  ``pelvis``, ``torso``, ``head``, ``femur_r``, ``tibia_r``, ``calcn_r``, ``toes_r``,
+  ``humerus_r``, ``radius_r`` (the forearm is one body), ``hand_r``, and ``_l``). Mass and inertia are *placeholders*
   (:data:`PLACEHOLDER_MASS` kg, a diagonal inertia of :data:`PLACEHOLDER_INERTIA`
   kg m^2 about the centre of mass, put at the centroid of the segment's markers or the
   body origin without any): a marker fit says nothing about them, so the model serves
@@ -29,7 +33,9 @@ ElementTree only: OpenSim itself is not needed to write the file):
   by ``Q``, an orthonormal basis of the body frame with third column ``C a / |C a|``
   (in the rest pose the child's axes equal the parent's, so ``a`` is the same vector in
   both). Joint ``j`` is named ``<parent>-<child>`` like :meth:`jaxskel.SkeletonResult.joint_name`,
-  the free joint ``ground-<root>``.
+  the free joint ``ground-<root>``; with a humanoid anatomy, a joint whose child's part is
+  identified is named after it instead (:func:`jaxskel.anatomy.joint_name`: ``hip_r``,
+  ``knee_r``, ``ankle_r``, ``shoulder_r``, ``elbow_r``, ``neck``, ...).
 * **Coordinates** (OpenSim's conventions, checked against OpenSim 4.6): a ``BallJoint``
   ``<joint>_rx, _ry, _rz`` are body-fixed X-Y-Z Euler angles (radians) of the child's
   joint frame in the parent's, ``R = R_X(rx) R_Y(ry) R_Z(rz)`` (scipy's intrinsic
@@ -73,8 +79,10 @@ from .._errors import InputError
 from .._version import __version__
 from ..io import atomic_output, check_output, rotation_between_axes
 from ._bvh import euler_angles
+from ._export_names import part_names
 
 if TYPE_CHECKING:
+    from ..anatomy import Anatomy
     from ..skeleton import Motion, Skeleton
 
 __all__ = [
@@ -223,6 +231,14 @@ def _pose(skeleton: Skeleton, motion: Motion, frame: int, rot: np.ndarray) -> tu
     return rot @ seg @ rot.T, rot @ root, int(frame) % n_frames
 
 
+def _joint_labels(edges: np.ndarray, names: Sequence[str], anatomy: Anatomy | None) -> list[str]:
+    """Each joint's name: ``<parent>-<child>``, or its anatomical name for a humanoid's identified child."""
+    from ..anatomy import joint_name
+
+    humanoid = anatomy is not None and anatomy.humanoid
+    return [(humanoid and joint_name(anatomy.parts[c])) or f"{names[p]}-{names[c]}" for p, c in edges.tolist()]
+
+
 # ---------------------------------------------------------------------- XML
 def _num(v: float) -> str:
     return format(float(v), ".17g")
@@ -277,6 +293,7 @@ def export_osim(
     segment_names: Sequence[str] | None = None,
     overwrite: bool = False,
     model_name: str = "jaxskel",
+    anatomy: Anatomy | None = None,
 ) -> Path:
     """Write a fitted skeleton as an OpenSim 4 model (``.osim``), atomically.
 
@@ -305,6 +322,10 @@ def export_osim(
         (:func:`opensim_names`); given names must stay distinct.
     model_name
         The model's name.
+    anatomy
+        The body parts of the segments (:class:`jaxskel.anatomy.Anatomy`): with a humanoid
+        one, identified segments and their joints take OpenSim's names (module docstring);
+        the others keep ``segment_names``.
 
     Returns the path written. Raises :class:`jaxskel.InputError` for a bad path (not
     ``.osim``, a folder, an existing file without ``overwrite``), up axis, names or motion.
@@ -312,8 +333,10 @@ def export_osim(
     check_output(path, "osim")  # before any work: a folder, not .osim, an unwritable folder
     rot = opensim_frame(up_axis)
     n_seg = skeleton.n_segments
+    if anatomy is not None and len(anatomy.parts) != n_seg:
+        raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {n_seg}")
     if segment_names is None:
-        names = opensim_names(skeleton.names(), reserved=("ground",))
+        names = opensim_names(part_names(anatomy, skeleton.names(), "opensim"), reserved=("ground",))
     else:
         names = tuple(_valid_name(v) for v in segment_names)
         if len(names) != n_seg or len(set(names)) != n_seg or "ground" in names:
@@ -321,6 +344,7 @@ def export_osim(
                 f"segment_names must be {n_seg} distinct names other than 'ground' (after making them valid "
                 f"OpenSim names: {', '.join(names)})"
             )
+        names = opensim_names(part_names(anatomy, names, "opensim"), reserved=("ground",))
     edges = np.asarray(skeleton.edges, dtype=int)
     root = int(skeleton.root)
     axes = _hinge_axes(skeleton)
@@ -332,7 +356,7 @@ def export_osim(
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: joints without an axis
             typical = np.nanpercentile(off, 95, axis=0)
         axes[np.isfinite(typical) & (typical > PIN_MAX_OFF_AXIS)] = np.nan
-    joint_names = opensim_names([f"{names[p]}-{names[c]}" for p, c in edges], reserved=[f"ground-{names[root]}"])
+    joint_names = opensim_names(_joint_labels(edges, names, anatomy), reserved=[f"ground-{names[root]}"])
     root_joint = f"ground-{names[root]}"
 
     # Default pose (OpenSim frame): body orientations and the root origin.

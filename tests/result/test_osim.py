@@ -17,11 +17,13 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from anatomy.truth import SYNTH_PART
 from helpers import opensim_ik_rms, true_joint_index, truth_motion, truth_skeleton
 from scipy.spatial.transform import Rotation
 
 import jaxskel
 from jaxskel import InputError, synth
+from jaxskel.anatomy import Anatomy
 from jaxskel.result import export_osim, opensim_frame, opensim_names, to_opensim_frame
 
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
@@ -233,6 +235,49 @@ def _markers_in_ground(osim, path, labels):
     model.realizePosition(state)
     markers = model.getMarkerSet()
     return model, np.array([_vec(markers.get(name).getLocationInGround(state)) for name in labels])
+
+
+def _anatomy(truth, humanoid=True):
+    """The synthetic full body's true parts (tests/anatomy/truth.py); it is Z up, facing +X."""
+    parts = tuple(SYNTH_PART.get(n, "") for n in truth.segment_names)
+    return Anatomy(parts=parts, confidence=np.ones(len(parts)), humanoid=humanoid, up=(0, 0, 1), front=(1, 0, 0))
+
+
+OPENSIM_BODIES = ("pelvis", "torso", "head", "humerus_l", "radius_l", "hand_l", "humerus_r", "radius_r", "hand_r",
+                  "femur_l", "tibia_l", "calcn_l", "femur_r", "tibia_r", "calcn_r")
+
+
+def test_a_humanoid_takes_opensim_body_and_joint_names(truth_body, tmp_path):
+    """gait2392 / Rajagopal body names, joints named after the joint (hip_r, knee_r, ...), in
+    the full body's segment order; a body that is not human keeps its segment names."""
+    skeleton, _, truth = truth_body
+    assert truth.segment_names[:4] == ("pelvis", "torso", "head", "l_upperarm")
+    named = dataclasses.replace(skeleton, segment_names=truth.segment_names)
+    model = ET.parse(export_osim(named, tmp_path / "h.osim", anatomy=_anatomy(truth))).getroot().find("Model")
+    assert tuple(b.get("name") for b in model.iter("Body")) == OPENSIM_BODIES
+    joints = [j.get("name") for j in model.find("JointSet/objects")]
+    child = {j.get("name"): j.find("frames")[1].find("socket_parent").text for j in model.find("JointSet/objects")}
+    assert joints[0] == "ground-pelvis"
+    for joint, body in (("hip_r", "femur_r"), ("knee_l", "tibia_l"), ("ankle_r", "calcn_r"),
+                        ("shoulder_l", "humerus_l"), ("elbow_r", "radius_r"), ("wrist_l", "hand_l"), ("neck", "head"),
+                        ("thoracic", "torso")):
+        assert child[joint] == f"/bodyset/{body}"
+    parents = {m.find("socket_parent_frame").text for m in model.iter("Marker")}
+    assert parents == {f"/bodyset/{b}" for b in OPENSIM_BODIES}
+    plain = ET.parse(export_osim(named, tmp_path / "n.osim", anatomy=_anatomy(truth, humanoid=False))).getroot()
+    assert tuple(b.get("name") for b in plain.find("Model").iter("Body")) == truth.segment_names
+    with pytest.raises(InputError, match="anatomy names"):
+        export_osim(named, tmp_path / "x.osim", anatomy=dataclasses.replace(
+            _anatomy(truth), parts=("pelvis",), confidence=np.ones(1)))
+
+
+def test_the_named_model_loads_and_poses_the_markers_as_the_unnamed_one(osim, truth_body, tmp_path):
+    skeleton, motion, truth = truth_body
+    path = export_osim(skeleton, tmp_path / "named.osim", motion=motion, frame=30, anatomy=_anatomy(truth))
+    model, where = _markers_in_ground(osim, path, skeleton.marker_labels)
+    assert [model.getBodySet().get(b).getName() for b in range(model.getNumBodies())] == list(OPENSIM_BODIES)
+    assert model.getCoordinateSet().contains("knee_r_angle") and model.getCoordinateSet().contains("hip_l_rx")
+    np.testing.assert_allclose(where, to_opensim_frame(motion.fitted_markers[30], "z"), atol=1e-6)
 
 
 @pytest.mark.extended  # a full-body fit (about a minute on 2 cores); the true skeleton's cases run by default
