@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -229,11 +230,14 @@ class SkeletonResult:
         *,
         trial: int | None = None,
         overwrite: bool = False,
-        units: str = "m",
+        units: str = "cm",
         rotation_order: str = "ZXY",
+        names: str | Mapping[str, str] | None = None,
     ) -> Path:
         """Write the rigid skeleton and its IK motion as BVH (:func:`jaxskel.result.export_bvh`),
-        segments named by :attr:`segment_names`, at the recording's frame rate.
+        at the recording's frame rate, Y up: for a human :attr:`anatomy`, facing +Z in a
+        T-pose rest with ``names`` (default Mixamo's); otherwise segments named by
+        :attr:`segment_names`, the recording's up axis turned to Y.
 
         ``trial`` picks one input trial of a joint fit (its frames, ``trial_bounds``);
         ``None`` writes every frame of the fitted recording, the trials one after another.
@@ -254,7 +258,8 @@ class SkeletonResult:
 
         return export_bvh(
             self.skeleton, motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
-            labels=self.segment_names, rotation_order=rotation_order,
+            labels=self.segment_names, rotation_order=rotation_order, anatomy=self.anatomy, names=names,
+            up_axis=self.trial.up_axis,
         )
 
     def export_osim(self, path: str, *, overwrite: bool = False, frame: int | None = None) -> Path:
@@ -270,4 +275,4 @@ class SkeletonResult:
         if motion is not None and frame is None:
             frame = int(self.skeleton.diagnostics.get("rest_frame", 0))
         return export_osim(self.skeleton, path, motion=motion, frame=0 if frame is None else frame, up_axis=self.trial.up_axis,
-                           segment_names=self.segment_names, overwrite=overwrite)
+                           segment_names=self.segment_names, overwrite=overwrite, anatomy=self.anatomy)

@@ -16,7 +16,7 @@ import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import h5py
 import numpy as np
@@ -24,9 +24,6 @@ import numpy as np
 from ..anatomy import Anatomy
 from ..clean import CleaningReport
 from ..io import Trial, atomic_output, check_output, input_sources, put, refuse_input
-
-if TYPE_CHECKING:
-    from ..anatomy import Anatomy
 
 __all__ = ["TrackedTrial"]
 
@@ -137,16 +134,16 @@ class TrackedTrial:
         """Write the tracked trial's result file (module docstring), atomically."""
         return save_tracked(self, path, overwrite=overwrite)
 
-    def export_bvh(self, path: str | os.PathLike[str], *, overwrite: bool = False, units: str = "m",
-                   rotation_order: str = "ZXY", anatomy: Anatomy | None = None,
-                   names: str | Mapping[str, str] | None = None) -> Path:
+    def export_bvh(self, path: str | os.PathLike[str], *, overwrite: bool = False, units: str = "cm",
+                   rotation_order: str = "ZXY", names: str | Mapping[str, str] | None = None) -> Path:
         """The motion as BVH on the calibration's rig (:func:`jaxskel.result.export_bvh`): every
-        trial tracked on one skeleton has the same hierarchy and offsets. Without an
-        ``anatomy`` the recording's up axis is turned to the BVH's Y."""
+        trial tracked on one skeleton has the same hierarchy and offsets, the calibration's
+        named body (:attr:`anatomy`) setting its axes, T-pose and names; without one the
+        recording's up axis is turned to the BVH's Y."""
         from ._bvh import export_bvh
 
         return export_bvh(self.skeleton, self.motion, path, rate=self.trial.rate, overwrite=overwrite, units=units,
-                          labels=self.segment_names, rotation_order=rotation_order, anatomy=anatomy, names=names,
+                          labels=self.segment_names, rotation_order=rotation_order, anatomy=self.anatomy, names=names,
                           up_axis=self.trial.up_axis)
 
 
