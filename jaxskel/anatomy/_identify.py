@@ -97,7 +97,8 @@ class _Poses:
 
 # --------------------------------------------------------------------------- poses
 def _rest_pose(skeleton) -> _Poses:
-    """The rest pose: every rotation identity, the root's origin at zero."""
+    """The rest pose: every rotation identity, the root's origin at zero (a joint sits at
+    ``joint_offsets[j, 0]`` in its parent's frame and ``joint_offsets[j, 1]`` in its child's)."""
     edges = np.asarray(skeleton.edges, int).reshape(-1, 2)
     origin = np.zeros((skeleton.n_segments, 3))
     done = np.zeros(skeleton.n_segments, bool)
@@ -107,9 +108,9 @@ def _rest_pose(skeleton) -> _Poses:
         ready = done[edges[:, 0]] & ~done[edges[:, 1]]
         if not ready.any():
             break
-        origin[edges[ready, 1]] = origin[edges[ready, 0]] + offsets[ready, 0]
+        origin[edges[ready, 1]] = origin[edges[ready, 0]] + offsets[ready, 0] - offsets[ready, 1]
         done[edges[ready, 1]] = True
-    joints = origin[edges[:, 1]]
+    joints = origin[edges[:, 0]] + offsets[:, 0]
     seg = np.asarray(skeleton.marker_segment, int)
     markers = np.where((seg >= 0)[:, None], origin[np.maximum(seg, 0)] + skeleton.marker_offsets, np.nan)
     return _Poses(joints[None], markers[None])
