@@ -36,7 +36,8 @@ No marker name is read. The method (issue 72):
 4. **Up and front.** ``up`` is the given lab axis, or (``"auto"``) the mean over the
    frames of the body's up (pelvis to thorax, hips to the legs' distal ends), snapped
    to the nearest signed lab axis within ``axis_snap_deg``. ``front = left x up`` with
-   ``left`` the pair's side estimate at the rest pose, made perpendicular to ``up``.
+   ``left`` at the rest pose (right hip to left hip where the legs are sided, else the
+   limbs' side estimate), made perpendicular to ``up``.
 
 Without a motion the rest pose (the skeleton's posture at its rest frame: every
 rotation identity, :class:`jaxskel.skeleton.Skeleton`) is the only frame: straight knees
@@ -412,15 +413,17 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     thorax = _thorax(legs, arms, branches)
     if thorax >= 0:
         naming.name(thorax, "thorax", 0.9)
-        _name_trunk(naming, legs, thorax, branches, poses, marker_segment)
     if arms is not None:
         if legs_sided:
             arm_e = _arms_by_hips(arms, legs, leg_e, poses, opts)
         _name_pair(naming, arms, arm_e, False, opts)
     elif legs_sided and thorax >= 0:
         _name_lone_arm(naming, legs, leg_e, thorax, branches, poses, opts)
+    if thorax >= 0:
+        _name_trunk(naming, legs, thorax, branches, poses, marker_segment)
     up = lab_up if lab_up is not None else _auto_up(legs, thorax, poses, marker_segment, opts)
-    front = _front(up, _rest_left(legs, arms, rest, marker_segment))
+    rest_left = _hip_left(legs, leg_e, rest)[0] if legs_sided else _rest_left(legs, arms, rest, marker_segment)
+    front = _front(up, rest_left)
     return Anatomy(tuple(naming.parts), naming.confidence, True, up, front, tuple(naming.notes))
 
 
