@@ -27,9 +27,10 @@ No marker name is read. The method (issue 72):
    the flexion. A foot points forwards: with ``u`` the unit shank (ankle to knee) and
    ``c`` ankle to the foot's markers, ``u x c_perp / |c|`` points left. An elbow bends
    the forearm forwards: ``u x c_perp / |c|`` (upper arm, forearm). Summing a pair's
-   estimates ``L`` per frame, the side evidence of limb 1 being the left one is
-   ``e = sum_f (h_f . L_f) / sum_f |L_f|`` with ``h_f`` the unit vector from limb 2's
-   first joint to limb 1's; sides are named when ``|e| >= min_side_evidence``. Arms are
+   estimates ``L`` per frame, the side evidence of limb 1 being the left one is, per
+   limb, ``e = sum_f (h_f . L_f) / sum_f |L_f|`` with ``h_f`` the unit vector from limb
+   2's first joint to limb 1's; the weaker of the two limbs' (0 where they disagree) is
+   the pair's, and sides are named when ``|e| >= min_side_evidence``. Arms are
    sided by their shoulders' positions along the pelvis's left (right hip to left hip),
    which the trunk's twist never turns by a quarter turn, when the legs are sided, else
    by their elbows.
@@ -257,11 +258,16 @@ def _first_joint(limb: _Limb, poses: _Poses) -> np.ndarray:
 
 
 def _side_evidence(pair: _Pair, poses: _Poses, marker_segment: np.ndarray, leg: bool) -> float:
-    """``e`` in [-1, 1]: positive when ``pair.a`` is the left limb (module docstring, 3)."""
-    left = _limb_left(pair.a, poses, marker_segment, leg) + _limb_left(pair.b, poses, marker_segment, leg)
+    """``e`` in [-1, 1]: positive when ``pair.a`` is the left limb (module docstring, 3).
+    Each limb's estimates are weighed on their own and the weaker one counts: two limbs
+    that disagree give 0."""
     h = _unit(_first_joint(pair.a, poses) - _first_joint(pair.b, poses))
-    total = np.linalg.norm(left, axis=-1).sum()
-    return float(np.sum(h * left) / total) if total > 1e-12 else 0.0
+    each = []
+    for limb in (pair.a, pair.b):
+        left = _limb_left(limb, poses, marker_segment, leg)
+        total = np.linalg.norm(left, axis=-1).sum()
+        each.append(float(np.sum(h * left) / total) if total > 1e-12 else 0.0)
+    return float(np.sign(each[0]) * min(abs(each[0]), abs(each[1]))) if each[0] * each[1] > 0 else 0.0
 
 
 def _shoulder(limb: _Limb, poses: _Poses, clavicle_ratio: float) -> np.ndarray:
