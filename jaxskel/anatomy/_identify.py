@@ -270,7 +270,7 @@ def _side_evidence(pair: _Pair, poses: _Poses, marker_segment: np.ndarray, leg: 
     return float(np.sign(each[0]) * min(abs(each[0]), abs(each[1]))) if each[0] * each[1] > 0 else 0.0
 
 
-def _shoulder(limb: _Limb, poses: _Poses, clavicle_ratio: float) -> np.ndarray:
+def _shoulder(limb: _Limb, poses: _Poses) -> np.ndarray:
     """(F, 3) the upper arm's proximal joint (past a clavicle)."""
     b, k = limb.branch, limb.hinge
     return poses.joints[:, b.joints[k - 1]]
@@ -357,8 +357,10 @@ def _front(up: np.ndarray, left: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- main
-def _not_human(n: int, up: np.ndarray, why: str) -> Anatomy:
-    return Anatomy(("",) * n, np.zeros(n), False, up, _front(up, np.zeros(3)), (why,))
+def _not_human(n: int, up: np.ndarray | None, why: str) -> Anatomy:
+    notes = (why,) if up is not None else (why, "No body to find the vertical from: +Z taken as up.")
+    up = np.array([0.0, 0.0, 1.0]) if up is None else up
+    return Anatomy(("",) * n, np.zeros(n), False, up, _front(up, np.zeros(3)), notes)
 
 
 def _check(skeleton, up_axis, options) -> AnatomyOptions:
@@ -399,9 +401,8 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     hubs = [s for s in range(n) if len(nbrs[s]) >= 3]
     branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
     pairs = [p for h in hubs for p in _pairs(_limbs(branches[h]), opts.limb_match)]
-    fallback_up = lab_up if lab_up is not None else np.array([0.0, 0.0, 1.0])
     if not pairs:
-        return _not_human(n, fallback_up, "No hub of the tree carries two limbs of matching length: not a human body.")
+        return _not_human(n, lab_up, "No hub of the tree carries two limbs of matching length: not a human body.")
     pairs.sort(key=lambda p: -(p.a.span + p.b.span))
     legs, arms = _legs_and_arms(pairs, opts)
     naming = _Naming([""] * n, np.zeros(n), [])
@@ -409,7 +410,7 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     arm_e = _side_evidence(arms, poses, marker_segment, False) if arms is not None else 0.0
     if max(abs(leg_e), abs(arm_e)) < opts.min_side_evidence:
         return _not_human(
-            n, fallback_up,
+            n, lab_up,
             f"The matched limbs do not bend like knees or elbows (side evidence {leg_e:+.2f}, {arm_e:+.2f}): "
             "not a human body.",
         )  # fmt: skip
@@ -493,7 +494,7 @@ def _hip_left(legs: _Pair, leg_e: float, poses: _Poses) -> np.ndarray:
 def _arms_by_hips(arms: _Pair, legs: _Pair, leg_e: float, poses: _Poses, opts: AnatomyOptions) -> float:
     """Side evidence of ``arms.a`` being the left arm: its shoulder along the hips' left."""
     left = _hip_left(legs, leg_e, poses)
-    sa, sb = _shoulder(arms.a, poses, opts.clavicle_ratio), _shoulder(arms.b, poses, opts.clavicle_ratio)
+    sa, sb = _shoulder(arms.a, poses), _shoulder(arms.b, poses)
     return _along(sa, sb, left) * min(1.0, abs(leg_e) / max(opts.min_side_evidence, 1e-12))
 
 
@@ -507,7 +508,7 @@ def _name_lone_arm(naming, legs, leg_e, thorax, branches, poses, opts) -> None:
     arm = cands[0]
     others = [j for b in branches[thorax] for j in b.joints[:1] if b is not arm.branch]
     mid = poses.joints[:, others].mean(axis=1)
-    e = _along(_shoulder(arm, poses, opts.clavicle_ratio), mid, _hip_left(legs, leg_e, poses))
+    e = _along(_shoulder(arm, poses), mid, _hip_left(legs, leg_e, poses))
     if abs(e) >= opts.min_side_evidence:
         _name_limb(naming, arm, "l" if e > 0 else "r", abs(e) * 0.8, False, opts.clavicle_ratio)
         naming.notes.append(f"One arm only: sided by its shoulder along the hips' left ({abs(e):.2f}).")
@@ -532,6 +533,5 @@ def identify_result(result, *, options: AnatomyOptions | None = None) -> Anatomy
     (None without IK) and its trial's up axis (``"unknown"``: ``"auto"``)."""
     if result.skeleton is None:
         raise InputError("the result has no rigid skeleton; fit with rigid=True to name its body parts")
-    trial = result.trial if not isinstance(result.trial, (list, tuple)) else result.trial[0]
-    up = getattr(trial, "up_axis", "unknown")
+    up = result.trial.up_axis
     return identify(result.skeleton, result.motion, up_axis="auto" if up == "unknown" else up, options=options)
