@@ -29,11 +29,12 @@ No marker name is read. The method (issue 72):
    the forearm forwards: ``u x c_perp / |c|`` (upper arm, forearm). Summing a pair's
    estimates ``L`` per frame, the side evidence of limb 1 being the left one is, per
    limb, ``e = sum_f (h_f . L_f) / sum_f |L_f|`` with ``h_f`` the unit vector from limb
-   2's first joint to limb 1's; the weaker of the two limbs' (0 where they disagree) is
+   2's first joint to limb 1's; the mean of the two limbs' (0 where they disagree) is
    the pair's, and sides are named when ``|e| >= min_side_evidence``. Arms are
-   sided by their shoulders' positions along the pelvis's left (right hip to left hip),
-   which the trunk's twist never turns by a quarter turn, when the legs are sided, else
-   by their elbows.
+   sided by their upper arms' middles along the pelvis's left (right hip to left hip),
+   which the trunk's twist never turns by a quarter turn, when the legs are sided and
+   their elbows agree (else they are left unnamed), and by their elbows alone without
+   sided legs.
 4. **Up and front.** ``up`` is the given lab axis, or (``"auto"``) the mean over the
    frames of the body's up (pelvis to thorax, hips to the legs' distal ends), snapped
    to the nearest signed lab axis within ``axis_snap_deg``. ``front = left x up`` with
@@ -56,7 +57,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._options import AnatomyOptions
-from ._vocabulary import Anatomy
+from ._vocabulary import Anatomy, is_ancestor
 
 __all__ = ["identify", "identify_result"]
 
@@ -157,12 +158,58 @@ def _point(poses: _Poses, segment: int, marker_segment: np.ndarray) -> np.ndarra
 
 
 # --------------------------------------------------------------------------- tree
-def _neighbours(edges: np.ndarray, n: int) -> list[list[tuple[int, int]]]:
+def _is_proximal(a: str, b: str) -> bool:
+    return is_ancestor(a, b)
+
+
+def _neighbours(edges: np.ndarray, n: int, all_edges: np.ndarray | None = None) -> list[list[tuple[int, int]]]:
+    """Each segment's (neighbour, joint) pairs; joints indexed in ``all_edges`` when ``edges``
+    is a subset of them."""
+    index = {tuple(e): j for j, e in enumerate((edges if all_edges is None else all_edges).tolist())}
     out: list[list[tuple[int, int]]] = [[] for _ in range(n)]
-    for j, (a, b) in enumerate(edges.tolist()):
-        out[a].append((b, j))
-        out[b].append((a, j))
+    for a, b in edges.tolist():
+        out[a].append((b, index[(a, b)]))
+        out[b].append((a, index[(a, b)]))
     return out
+
+
+def _twigs(nbrs, rest: _Poses, marker_segment: np.ndarray, opts: AnatomyOptions) -> dict[int, int]:
+    """Twig -> its joint: a leaf with at most ``twig_markers`` markers that either hangs from
+    a segment with two other neighbours or sits on another joint of its host (within
+    ``twig_ratio`` of the host's extent): a marker over a joint or a landmark, split off
+    its segment. Twigs are left out of the tree's chains."""
+    out = {}
+    for leaf, links in enumerate(nbrs):
+        if len(links) != 1 or np.count_nonzero(marker_segment == leaf) > opts.twig_markers:
+            continue
+        host, joint = links[0]
+        others = [j for s, j in nbrs[host] if s != leaf and s not in out]
+        if len(others) >= 2:
+            out[leaf] = joint
+            continue
+        points = np.concatenate([rest.joints[0, [j for _, j in nbrs[host]]], rest.markers[0, marker_segment == host]])
+        extent = np.linalg.norm(points[:, None] - points[None], axis=-1).max()
+        near = [j for j in others if np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint]) <= opts.twig_ratio * extent]
+        if near:
+            out[leaf] = joint
+    return out
+
+
+def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, opts: AnatomyOptions) -> None:
+    """A twig on a joint of its host takes the part proximal of that joint (an ankle
+    marker: the shank); other twigs stay unnamed."""
+    for leaf, joint in twigs.items():
+        host = [s for s, j in nbrs_all[leaf] if j == joint][0]
+        for other, j in nbrs_all[host]:
+            if other == leaf or j == joint:
+                continue
+            near = np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint])
+            span = np.linalg.norm(rest.joints[0, [jj for _, jj in nbrs_all[host]]] - rest.joints[0, joint], axis=1).max()
+            a, b = naming.parts[host], naming.parts[other]
+            if a and b and near <= opts.twig_ratio * max(span, 1e-9):
+                proximal = b if _is_proximal(b, a) else a
+                naming.name(leaf, proximal, 0.5 * min(naming.confidence[host], naming.confidence[other]))
+                break
 
 
 def _branches(skeleton, rest: _Poses, nbrs, hub: int) -> list[_Branch]:
@@ -259,21 +306,22 @@ def _first_joint(limb: _Limb, poses: _Poses) -> np.ndarray:
 
 def _side_evidence(pair: _Pair, poses: _Poses, marker_segment: np.ndarray, leg: bool) -> float:
     """``e`` in [-1, 1]: positive when ``pair.a`` is the left limb (module docstring, 3).
-    Each limb's estimates are weighed on their own and the weaker one counts: two limbs
-    that disagree give 0."""
+    Each limb's estimates are weighed on their own and the two averaged: two limbs that
+    disagree give 0."""
     h = _unit(_first_joint(pair.a, poses) - _first_joint(pair.b, poses))
     each = []
     for limb in (pair.a, pair.b):
         left = _limb_left(limb, poses, marker_segment, leg)
         total = np.linalg.norm(left, axis=-1).sum()
         each.append(float(np.sum(h * left) / total) if total > 1e-12 else 0.0)
-    return float(np.sign(each[0]) * min(abs(each[0]), abs(each[1]))) if each[0] * each[1] > 0 else 0.0
+    return 0.5 * (each[0] + each[1]) if each[0] * each[1] > 0 else 0.0
 
 
 def _shoulder(limb: _Limb, poses: _Poses) -> np.ndarray:
-    """(F, 3) the upper arm's proximal joint (past a clavicle)."""
+    """(F, 3) the middle of the upper arm (between its proximal joint, past a clavicle,
+    and the elbow): lateral of the trunk however the arm swings."""
     b, k = limb.branch, limb.hinge
-    return poses.joints[:, b.joints[k - 1]]
+    return 0.5 * (poses.joints[:, b.joints[k - 1]] + poses.joints[:, b.joints[k]])
 
 
 def _along(points_a: np.ndarray, points_b: np.ndarray, left: np.ndarray) -> float:
@@ -397,7 +445,8 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     marker_segment = np.asarray(skeleton.marker_segment, int)
     rest = _rest_pose(skeleton)
     poses = rest if motion is None else _motion_poses(skeleton, motion, opts.max_frames)
-    nbrs = _neighbours(edges, n)
+    twigs = _twigs(_neighbours(edges, n), rest, marker_segment, opts)
+    nbrs = _neighbours(edges[[j not in twigs.values() for j in range(len(edges))]] if twigs else edges, n, edges)
     hubs = [s for s in range(n) if len(nbrs[s]) >= 3]
     branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
     pairs = [p for h in hubs for p in _pairs(_limbs(branches[h]), opts.limb_match)]
@@ -422,12 +471,18 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
         naming.name(thorax, "thorax", 0.9)
     if arms is not None:
         if legs_sided:
-            arm_e = _arms_by_hips(arms, legs, leg_e, poses, opts)
+            by_hips = _arms_by_hips(arms, legs, leg_e, poses, opts)
+            if by_hips * arm_e < 0:
+                naming.notes.append(
+                    f"The arms' shoulders ({by_hips:+.2f}) and elbows ({arm_e:+.2f}) disagree on their sides: not named."
+                )
+            arm_e = by_hips if by_hips * arm_e > 0 else 0.0
         _name_pair(naming, arms, arm_e, False, opts)
     elif legs_sided and thorax >= 0:
         _name_lone_arm(naming, legs, leg_e, thorax, branches, poses, opts)
     if thorax >= 0:
         _name_trunk(naming, legs, thorax, branches, poses, marker_segment)
+    _name_twigs(naming, twigs, _neighbours(edges, n), rest, opts)
     up = lab_up if lab_up is not None else _auto_up(legs, thorax, poses, marker_segment, opts)
     rest_left = _hip_left(legs, leg_e, rest)[0] if legs_sided else _rest_left(legs, arms, rest, marker_segment)
     front = _front(up, rest_left)

@@ -36,6 +36,12 @@ class AnatomyOptions:
     axis_snap_deg
         With ``up_axis="auto"``, the measured up direction is replaced by the nearest
         signed lab axis when it lies within this angle of it (degrees, 0 never).
+    twig_markers, twig_ratio
+        A leaf segment with at most ``twig_markers`` markers is a *twig* (a marker over a
+        joint or a landmark, split off its segment; not a chain of its own) when it hangs
+        from a segment with two other neighbours, or when its joint lies within
+        ``twig_ratio`` of its host's extent from another joint of the host. A twig on a
+        joint takes the part proximal of that joint.
     max_frames
         At most this many frames of the motion, spread evenly, are used.
     """
@@ -45,6 +51,8 @@ class AnatomyOptions:
     min_leg_span: float = 0.68
     clavicle_ratio: float = 0.6
     axis_snap_deg: float = 30.0
+    twig_markers: int = 1
+    twig_ratio: float = 0.3
     max_frames: int = 2000
 
     def __post_init__(self) -> None:
@@ -58,5 +66,8 @@ class AnatomyOptions:
         number("min_leg_span", 0.0, 10.0)
         number("clavicle_ratio", 0.0, 1.0)
         number("axis_snap_deg", 0.0, 90.0)
+        number("twig_ratio", 0.0, 1.0)
+        if isinstance(self.twig_markers, bool) or not isinstance(self.twig_markers, int) or self.twig_markers < 0:
+            raise InputError(f"AnatomyOptions.twig_markers must be a non-negative integer; got {self.twig_markers!r}")
         if isinstance(self.max_frames, bool) or not isinstance(self.max_frames, int) or self.max_frames < 1:
             raise InputError(f"AnatomyOptions.max_frames must be a positive integer; got {self.max_frames!r}")
