@@ -8,10 +8,11 @@ No marker name is read. The method (issue 72):
    leaf (a *limb*) or in another hub (a *spine*). A segment's length in its branch is
    the distance from the joint it is entered by to the joint it is left by, or for a
    leaf to its farthest marker (at the rest pose).
-2. **Pairs.** A limb's *span* is its longest sum of two consecutive segment lengths
-   (thigh + shank, upper arm + forearm); its *hinge* (knee, elbow) is the joint between
-   those two. Two limbs of one hub whose spans agree to ``limb_match`` and that choose
-   each other are a mirror pair. Of two pairs the longer is the legs, its hub the
+2. **Pairs.** A limb's *hinge* (knee, elbow) is a joint between two consecutive
+   segments whose shorter one is at least half the longest such (thigh and shank, upper
+   arm and forearm; a long clavicle or a head segment before an upper arm a rival), its
+   *span* the sum of those two. Two limbs of one hub whose spans, for the hinges that
+   agree best, agree to ``limb_match`` and that choose each other are a mirror pair. Of two pairs the longer is the legs, its hub the
    pelvis; the other's hub is the thorax. A lone pair is legs when its span is at least
    ``min_leg_span``. The branches between pelvis and thorax are the spine (one segment:
    the abdomen); the thorax's remaining limb (the one pointing along the spine, away
@@ -33,7 +34,7 @@ No marker name is read. The method (issue 72):
    the pair's, and sides are named when ``|e| >= min_side_evidence``. Arms are
    sided by their upper arms' middles along the pelvis's left (right hip to left hip),
    which the trunk's twist never turns by a quarter turn, when the legs are sided and
-   their elbows agree (else they are left unnamed), and by their elbows alone without
+   their elbows do not say the other side as firmly (else they are left unnamed), and by their elbows alone without
    sided legs.
 4. **Up and front.** ``up`` is the given lab axis, or (``"auto"``) the mean over the
    frames of the body's up (pelvis to thorax, hips to the legs' distal ends), snapped
@@ -242,8 +243,20 @@ def _branches(skeleton, rest: _Poses, nbrs, hub: int) -> list[_Branch]:
     return out
 
 
+def _hinge_options(branch: _Branch) -> list[tuple[int, float]]:
+    """A leaf branch's possible hinges (index of the segment after it) and spans: the
+    joints between two consecutive segments whose shorter is at least half the best such
+    (the knee or elbow, and a near rival: a clavicle or head segment before the upper arm)."""
+    if branch.end_hub >= 0 or len(branch.segments) < 2:
+        return []
+    pair_len = np.minimum(branch.lengths[:-1], branch.lengths[1:])
+    ks = np.flatnonzero(pair_len >= 0.5 * pair_len.max()) + 1
+    return [(int(k), float(branch.lengths[k - 1] + branch.lengths[k])) for k in ks]
+
+
 def _limb(branch: _Branch) -> _Limb | None:
-    """A leaf branch of two or more segments as a limb: its hinge and span."""
+    """A leaf branch of two or more segments as a limb: its hinge (the joint between the
+    two longest consecutive segments) and span."""
     if branch.end_hub >= 0 or len(branch.segments) < 2:
         return None
     pair_len = np.minimum(branch.lengths[:-1], branch.lengths[1:])
@@ -255,18 +268,31 @@ def _limbs(branches: list[_Branch]) -> list[_Limb]:
     return [limb for limb in map(_limb, branches) if limb is not None]
 
 
+def _match(a: _Limb, b: _Limb) -> tuple[float, _Limb, _Limb]:
+    """The two limbs' hinges chosen among their options so that their spans agree best."""
+    best = (np.inf, a, b)
+    for ka, sa in _hinge_options(a.branch):
+        for kb, sb in _hinge_options(b.branch):
+            m = abs(sa - sb) / max(sa, sb, 1e-12)
+            if m < best[0] - 1e-9 or (m < best[0] + 1e-9 and (ka, kb) == (a.hinge, b.hinge)):
+                best = (m, _Limb(a.branch, ka, sa), _Limb(b.branch, kb, sb))
+    return best
+
+
 def _pairs(limbs: list[_Limb], limb_match: float) -> list[_Pair]:
-    """Mutual best mirror partners among one hub's limbs."""
+    """Mutual best mirror partners among one hub's limbs (each pair's hinges by :func:`_match`)."""
     if len(limbs) < 2:
         return []
-    span = np.array([limb.span for limb in limbs])
-    mismatch = np.abs(span[:, None] - span[None]) / np.maximum(np.maximum(span[:, None], span[None]), 1e-12)
-    np.fill_diagonal(mismatch, np.inf)
+    matches = {(i, j): _match(limbs[i], limbs[j]) for i in range(len(limbs)) for j in range(len(limbs)) if i != j}
+    mismatch = np.full((len(limbs), len(limbs)), np.inf)
+    for (i, j), m in matches.items():
+        mismatch[i, j] = m[0]
     best = np.argmin(mismatch, axis=1)
     out = []
     for i, j in enumerate(best.tolist()):
         if i < j and best[j] == i and mismatch[i, j] <= limb_match:
-            out.append(_Pair(limbs[i], limbs[j], float(mismatch[i, j])))
+            m, a, b = matches[(i, j)]
+            out.append(_Pair(a, b, float(m)))
     return out
 
 
@@ -472,11 +498,12 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     if arms is not None:
         if legs_sided:
             by_hips = _arms_by_hips(arms, legs, leg_e, poses, opts)
-            if by_hips * arm_e < 0:
+            conflict = by_hips * arm_e < 0 and abs(arm_e) >= opts.min_side_evidence
+            if conflict:
                 naming.notes.append(
                     f"The arms' shoulders ({by_hips:+.2f}) and elbows ({arm_e:+.2f}) disagree on their sides: not named."
                 )
-            arm_e = by_hips if by_hips * arm_e > 0 else 0.0
+            arm_e = 0.0 if conflict else by_hips
         _name_pair(naming, arms, arm_e, False, opts)
     elif legs_sided and thorax >= 0:
         _name_lone_arm(naming, legs, leg_e, thorax, branches, poses, opts)
