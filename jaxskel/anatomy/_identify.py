@@ -12,8 +12,11 @@ No marker name is read. The method (issue 72):
    segments whose shorter one is at least half the longest such (thigh and shank, upper
    arm and forearm; a long clavicle or a head segment before an upper arm a rival), its
    *span* the sum of those two. Two limbs of one hub whose spans, for the hinges that
-   agree best, agree to ``limb_match`` and that choose each other are a mirror pair. Of two pairs the longer is the legs, its hub the
-   pelvis; the other's hub is the thorax. A lone pair is legs when its span is at least
+   agree best, agree to ``limb_match`` and that choose each other are a mirror pair. Of
+   two pairs the longer is the legs, its hub the pelvis (a tree without hubs, a chain,
+   is split at the segment that leaves the best-matched pair: a pelvis with two legs
+   and no trunk); the other's hub is the thorax. A lone pair is legs when its span is at
+   least
    ``min_leg_span``. The branches between pelvis and thorax are the spine (one segment:
    the abdomen); the thorax's remaining limb (the one pointing along the spine, away
    from the pelvis) is the head chain, its distal segment the head. Along a limb: the
@@ -188,26 +191,31 @@ def _twigs(nbrs, rest: _Poses, marker_segment: np.ndarray, opts: AnatomyOptions)
         if len(others) >= 2:
             out[leaf] = joint
             continue
-        points = np.concatenate([rest.joints[0, [j for _, j in nbrs[host]]], rest.markers[0, marker_segment == host]])
-        extent = np.linalg.norm(points[:, None] - points[None], axis=-1).max()
+        extent = _extent(host, nbrs, rest, marker_segment)
         near = [j for j in others if np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint]) <= opts.twig_ratio * extent]
         if near:
             out[leaf] = joint
     return out
 
 
-def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, opts: AnatomyOptions) -> None:
+def _extent(segment: int, nbrs, rest: _Poses, marker_segment: np.ndarray) -> float:
+    """The largest distance between two of a segment's joints and markers at rest."""
+    points = np.concatenate([rest.joints[0, [j for _, j in nbrs[segment]]], rest.markers[0, marker_segment == segment]])
+    return float(np.linalg.norm(points[:, None] - points[None], axis=-1).max())
+
+
+def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, marker_segment, opts: AnatomyOptions) -> None:
     """A twig on a joint of its host takes the part proximal of that joint (an ankle
     marker: the shank); other twigs stay unnamed."""
     for leaf, joint in twigs.items():
         host = [s for s, j in nbrs_all[leaf] if j == joint][0]
+        extent = _extent(host, nbrs_all, rest, marker_segment)
         for other, j in nbrs_all[host]:
             if other == leaf or j == joint:
                 continue
             near = np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint])
-            span = np.linalg.norm(rest.joints[0, [jj for _, jj in nbrs_all[host]]] - rest.joints[0, joint], axis=1).max()
             a, b = naming.parts[host], naming.parts[other]
-            if a and b and near <= opts.twig_ratio * max(span, 1e-9):
+            if a and b and near <= opts.twig_ratio * extent:
                 proximal = b if _is_proximal(b, a) else a
                 naming.name(leaf, proximal, 0.5 * min(naming.confidence[host], naming.confidence[other]))
                 break
@@ -476,6 +484,10 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     hubs = [s for s in range(n) if len(nbrs[s]) >= 3]
     branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
     pairs = [p for h in hubs for p in _pairs(_limbs(branches[h]), opts.limb_match)]
+    if not pairs:  # a partial body: two legs on a pelvis with no trunk, a chain
+        pairs = _chain_pair(skeleton, rest, nbrs, opts)
+        hubs = [p.a.branch.hub for p in pairs]
+        branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
     if not pairs:
         return _not_human(n, lab_up, "No hub of the tree carries two limbs of matching length: not a human body.")
     pairs.sort(key=lambda p: -(p.a.span + p.b.span))
@@ -509,11 +521,23 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
         _name_lone_arm(naming, legs, leg_e, thorax, branches, poses, opts)
     if thorax >= 0:
         _name_trunk(naming, legs, thorax, branches, poses, marker_segment)
-    _name_twigs(naming, twigs, _neighbours(edges, n), rest, opts)
+    _name_twigs(naming, twigs, _neighbours(edges, n), rest, marker_segment, opts)
     up = lab_up if lab_up is not None else _auto_up(legs, thorax, poses, marker_segment, opts)
     rest_left = _hip_left(legs, leg_e, rest)[0] if legs_sided else _rest_left(legs, arms, rest, marker_segment)
     front = _front(up, rest_left)
     return Anatomy(tuple(naming.parts), naming.confidence, True, up, front, tuple(naming.notes))
+
+
+def _chain_pair(skeleton, rest: _Poses, nbrs, opts: AnatomyOptions) -> list[_Pair]:
+    """A tree without a hub, a chain: the segment that splits it into the best-matched
+    pair of limbs (a pelvis between two legs), as a one-pair list (empty: none)."""
+    best: list[_Pair] = []
+    for s in range(len(nbrs)):
+        if len(nbrs[s]) == 2:
+            pairs = _pairs(_limbs(_branches(skeleton, rest, nbrs, s)), opts.limb_match)
+            if pairs and (not best or pairs[0].mismatch < best[0].mismatch):
+                best = pairs
+    return best
 
 
 def _legs_and_arms(pairs: list[_Pair], opts: AnatomyOptions) -> tuple[_Pair | None, _Pair | None]:

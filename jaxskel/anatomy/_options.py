@@ -41,7 +41,9 @@ class AnatomyOptions:
         joint or a landmark, split off its segment; not a chain of its own) when it hangs
         from a segment with two other neighbours, or when its joint lies within
         ``twig_ratio`` of its host's extent from another joint of the host. A twig on a
-        joint takes the part proximal of that joint.
+        joint takes the part proximal of that joint. A toe segment starts at the far
+        end of its foot (about 0.7 of the foot's extent from the ankle), an ankle marker
+        split off a foot at 0.2-0.35.
     max_frames
         At most this many frames of the motion, spread evenly, are used.
     """
@@ -52,7 +54,7 @@ class AnatomyOptions:
     clavicle_ratio: float = 0.6
     axis_snap_deg: float = 30.0
     twig_markers: int = 1
-    twig_ratio: float = 0.3
+    twig_ratio: float = 0.4
     max_frames: int = 2000
 
     def __post_init__(self) -> None:

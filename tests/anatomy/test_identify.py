@@ -108,7 +108,7 @@ def test_a_mirrored_recording_swaps_every_side(full_fit):
 def test_a_turned_lab_frame_gives_the_same_parts(full_fit):
     result = full_fit[2]
     parts = identify_result(result).parts
-    z_to_y = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # Y up
+    z_to_y = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # the lab's Z becomes Y
     skeleton, motion = _transformed(result, z_to_y)
     for up_axis in ("y", "auto"):
         turned = identify(skeleton, motion, up_axis=up_axis)
@@ -181,15 +181,18 @@ def test_bad_arguments_raise_input_error(full_fit):
 
 
 # --------------------------------------------------------------------------- real recordings
-def _judge_real(path: Path) -> tuple[int, int, int]:
-    result = fit(jaxskel.load(path))
+def _judge_real(path: Path, **settings) -> tuple[int, int, int]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = jaxskel.fit_skeleton(jaxskel.load(path), **settings)
     anatomy = identify_result(result)
     return score(anatomy.parts, result_truth(result))
 
 
-def test_the_bundled_demo_is_named():
-    right, scored, swapped = _judge_real(Path(jaxskel.__file__).parent / "data" / "KneeltoProne01.c3d")
-    assert swapped == 0 and right >= 0.95 * scored
+def test_the_bundled_demo_is_named_from_its_rest_pose():
+    # without IK (fast): the rest pose is the only frame
+    right, scored, swapped = _judge_real(Path(jaxskel.__file__).parent / "data" / "KneeltoProne01.c3d", ik=False)
+    assert scored >= 15 and swapped == 0 and right >= 0.95 * scored, (right, scored)
 
 
 #: Measured levels below the target: recording -> reason (strict xfail).
