@@ -19,7 +19,7 @@ No marker name is read. The method (issue 72):
    least
    ``min_leg_span``. The branches between pelvis and thorax are the spine (one segment:
    the abdomen); the thorax's remaining limb (the one pointing along the spine, away
-   from the pelvis) is the head chain, its distal segment the head. Along a limb: the
+   from the pelvis) is the head chain, all of it the head (the vocabulary has no neck). Along a limb: the
    segment before the hinge is the thigh (upper arm), the one after it the shank
    (forearm), then the foot (hand) and the toes; a short segment before the upper arm
    (``clavicle_ratio``) is the clavicle.
@@ -206,7 +206,7 @@ def _extent(segment: int, nbrs, rest: _Poses, marker_segment: np.ndarray) -> flo
 
 def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, marker_segment, opts: AnatomyOptions) -> None:
     """A twig on a joint of its host takes the part proximal of that joint (an ankle
-    marker: the shank); other twigs stay unnamed."""
+    marker: the shank), any other twig its host's part; both at half the confidence."""
     for leaf, joint in twigs.items():
         host = [s for s, j in nbrs_all[leaf] if j == joint][0]
         extent = _extent(host, nbrs_all, rest, marker_segment)
@@ -219,6 +219,8 @@ def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, marker_se
                 proximal = b if _is_proximal(b, a) else a
                 naming.name(leaf, proximal, 0.5 * min(naming.confidence[host], naming.confidence[other]))
                 break
+        else:
+            naming.name(leaf, naming.parts[host], 0.5 * naming.confidence[host])
 
 
 def _branches(skeleton, rest: _Poses, nbrs, hub: int) -> list[_Branch]:
@@ -588,7 +590,9 @@ def _name_trunk(naming, legs, thorax, branches, poses, marker_segment) -> None:
     score = [float(np.nanmean(np.sum(_unit(_point(poses, b.segments[-1], marker_segment) - centre) * axis, -1))) for b in free]
     best = free[int(np.nanargmax(score))] if legs is not None else (free[0] if len(free) == 1 else None)
     if best is not None and (legs is None or max(score) > 0.3):
-        naming.name(best.segments[-1], "head", 0.8 if len(free) == 1 else 0.6)
+        conf = 0.8 if len(free) == 1 else 0.6
+        for i, segment in enumerate(best.segments):  # no neck part: the whole chain is the head
+            naming.name(segment, "head", conf if i == len(best.segments) - 1 else 0.5 * conf)
 
 
 def _hip_left(legs: _Pair, leg_e: float, poses: _Poses) -> np.ndarray:

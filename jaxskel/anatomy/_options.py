@@ -41,9 +41,9 @@ class AnatomyOptions:
         joint or a landmark, split off its segment; not a chain of its own) when it hangs
         from a segment with two other neighbours, or when its joint lies within
         ``twig_ratio`` of its host's extent from another joint of the host. A twig on a
-        joint takes the part proximal of that joint. A toe segment starts at the far
-        end of its foot (about 0.7 of the foot's extent from the ankle), an ankle marker
-        split off a foot at 0.2-0.35.
+        joint takes the part proximal of that joint, another twig its host's. A toe
+        segment starts at the far end of its foot (about 0.7 of the foot's extent from
+        the ankle), an ankle marker split off a foot at 0.2-0.35.
     max_frames
         At most this many frames of the motion, spread evenly, are used.
     """
