@@ -138,7 +138,8 @@ def _motion_poses(skeleton, motion, max_frames: int) -> _Poses:
     joints = np.asarray(motion.joint_positions, float).reshape(-1, skeleton.n_joints, 3)
     trans = np.asarray(motion.segment_translations, float).reshape(-1, skeleton.n_segments, 3)
     rot = np.asarray(motion.rotations, float).reshape(-1, skeleton.n_segments, 4)
-    keep = np.isfinite(joints).all(axis=(1, 2)) & np.isfinite(trans).all(axis=(1, 2)) & np.isfinite(rot).all(axis=(1, 2))
+    keep = np.isfinite(joints).all(axis=(1, 2)) & np.isfinite(trans).all(axis=(1, 2))
+    keep &= np.isfinite(rot).all(axis=(1, 2))
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return _rest_pose(skeleton)
@@ -192,7 +193,8 @@ def _twigs(nbrs, rest: _Poses, marker_segment: np.ndarray, opts: AnatomyOptions)
             out[leaf] = joint
             continue
         extent = _extent(host, nbrs, rest, marker_segment)
-        near = [j for j in others if np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint]) <= opts.twig_ratio * extent]
+        gaps = [np.linalg.norm(rest.joints[0, j] - rest.joints[0, joint]) for j in others]
+        near = [g for g in gaps if g <= opts.twig_ratio * extent]
         if near:
             out[leaf] = joint
     return out
@@ -392,7 +394,9 @@ def _name_pair(naming: _Naming, pair: _Pair, evidence: float, leg: bool, opts: A
     """Name a pair's limbs by the sign of their side evidence; False where too weak."""
     what = "legs" if leg else "arms"
     if abs(evidence) < opts.min_side_evidence:
-        naming.notes.append(f"The {what}' side evidence {evidence:+.2f} is below {opts.min_side_evidence}: sides not named.")
+        naming.notes.append(
+            f"The {what}' side evidence {evidence:+.2f} is below {opts.min_side_evidence}: sides not named."
+        )
         return False
     left, right = (pair.a, pair.b) if evidence > 0 else (pair.b, pair.a)
     conf = abs(evidence) * (1.0 - 0.5 * pair.mismatch / max(opts.limb_match, 1e-12))
@@ -515,7 +519,8 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
             conflict = by_hips * arm_e < 0 and abs(arm_e) >= opts.min_side_evidence
             if conflict:
                 naming.notes.append(
-                    f"The arms' shoulders ({by_hips:+.2f}) and elbows ({arm_e:+.2f}) disagree on their sides: not named."
+                    f"The arms' shoulders ({by_hips:+.2f}) and elbows ({arm_e:+.2f}) disagree on their sides: "
+                    "not named."
                 )
             arm_e = 0.0 if conflict else by_hips
         _name_pair(naming, arms, arm_e, False, opts)
@@ -587,7 +592,8 @@ def _name_trunk(naming, legs, thorax, branches, poses, marker_segment) -> None:
         axis = _unit(centre - pelvis)
     else:
         axis = np.zeros_like(centre)
-    score = [float(np.nanmean(np.sum(_unit(_point(poses, b.segments[-1], marker_segment) - centre) * axis, -1))) for b in free]
+    tips = [_unit(_point(poses, b.segments[-1], marker_segment) - centre) for b in free]
+    score = [float(np.nanmean(np.sum(tip * axis, -1))) for tip in tips]
     best = free[int(np.nanargmax(score))] if legs is not None else (free[0] if len(free) == 1 else None)
     if best is not None and (legs is None or max(score) > 0.3):
         conf = 0.8 if len(free) == 1 else 0.6
@@ -629,8 +635,9 @@ def _auto_up(legs, thorax, poses, marker_segment, opts) -> np.ndarray:
     ups = []
     if legs is not None:
         for limb in (legs.a, legs.b):
-            b = limb.branch
-            tip = poses.joints[:, b.joints[limb.hinge + 1]] if limb.hinge + 1 < len(b.joints) else _point(poses, b.segments[limb.hinge], marker_segment)
+            b, k = limb.branch, limb.hinge
+            tip = poses.joints[:, b.joints[k + 1]] if k + 1 < len(b.joints) else None
+            tip = _point(poses, b.segments[k], marker_segment) if tip is None else tip
             ups.append(_unit(_first_joint(limb, poses) - tip))
         if thorax >= 0:
             ups.append(_unit(_point(poses, thorax, marker_segment) - _point(poses, legs.a.branch.hub, marker_segment)))

@@ -62,8 +62,9 @@ def _transformed(result, matrix: np.ndarray):
     p = np.asarray(matrix, float)
     sk, mo = result.skeleton, result.motion
     skeleton = dataclasses.replace(
-        sk, marker_offsets=sk.marker_offsets @ p.T, joint_offsets=sk.joint_offsets @ p.T, diagnostics=dict(sk.diagnostics)
-    )
+        sk, marker_offsets=sk.marker_offsets @ p.T, joint_offsets=sk.joint_offsets @ p.T,
+        diagnostics=dict(sk.diagnostics),
+    )  # fmt: skip
     q = np.asarray(mo.rotations, float)
     r = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
     r = p @ r @ p.T if np.linalg.det(p) > 0 else p @ r @ p
