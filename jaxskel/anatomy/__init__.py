@@ -9,8 +9,11 @@ from ._vocabulary import (
     JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, is_ancestor, joint_between, joint_name, mirror,
     side_of,
 )
+from ._identify import identify, identify_result
+from ._options import AnatomyOptions
 
 __all__ = [
+    "AnatomyOptions", "identify", "identify_result",
     "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
     "joint_name", "mirror", "side_of",
 ]
