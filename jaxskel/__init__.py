@@ -54,6 +54,7 @@ _LAZY = {
     "JointOptions": "pipeline",
     "SkeletonOptions": "pipeline",
     "MotionOptions": "pipeline",
+    "BodyOptions": "pipeline",
     "BatchResult": "pipeline",
     "TrialOutcome": "pipeline",
     "SkeletonResult": "result",
@@ -65,8 +66,8 @@ _LAZY = {
 }
 
 #: The stages, each a namespace of its own: ``jaxskel.segment.segment_markers``, ...
-_SUBPACKAGES = ("io", "clean", "segment", "joints", "skeleton", "relabel", "sd06", "result", "plots", "pipeline",
-                "learn", "synth")
+_SUBPACKAGES = ("io", "clean", "segment", "joints", "skeleton", "relabel", "sd06", "anatomy", "result", "plots",
+                "pipeline", "learn", "synth")
 
 __all__ = sorted([*_LAZY, *_SUBPACKAGES, "__version__"])
 

@@ -133,7 +133,14 @@ def _parser() -> argparse.ArgumentParser:
 
     def output_options(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--plot", type=Path, default=None, help="write a summary figure (PNG/PDF)")
-        sp.add_argument("--bvh", type=Path, default=None, help="export the skeleton and motion as BVH")
+        sp.add_argument("--bvh", type=Path, default=None,
+                        help="export the skeleton and motion as BVH: Y up; a human body faces +Z in a T-pose rest")
+        sp.add_argument("--bvh-units", choices=("cm", "m"), default="cm", help="BVH lengths (default cm)")
+        sp.add_argument("--bvh-names", choices=("mixamo", "jaxskel", "opensim", "labels"), default=None,
+                        help="BVH joint names: Mixamo's (the default for a human body), the body parts', OpenSim's, "
+                        "or the segment names (the default otherwise)")
+        sp.add_argument("--trc-joint-centres", action="store_true",
+                        help="with --trc, add the joint centres as virtual markers (RHJC, LKJC, ...)")
         sp.add_argument("--trc", type=Path, default=None,
                         help="export the fitted (gap-filled) markers as TRC (with --osim: in the model's frame, Y up, "
                         "and names, ready for OpenSim's inverse kinematics)")
@@ -490,10 +497,13 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
         plt.close(figure)
         written.append(plot_angles)
     if args.bvh is not None:
-        result.export_bvh(args.bvh, overwrite=args.overwrite)
+        result.export_bvh(args.bvh, overwrite=args.overwrite, units=args.bvh_units, names=args.bvh_names)
         written.append(args.bvh)
     if args.trc is not None:
-        fitted = result.trial.replace(positions=result.motion.fitted_markers, source="jaxskel IK fit")
+        from .result import fitted_markers_trial
+
+        fitted = fitted_markers_trial(result.trial, result.skeleton, result.motion,
+                                      joint_centres=args.trc_joint_centres, anatomy=result.anatomy)
         if osim is not None:  # the model's frame and names: the TRC OpenSim's IK reads with the model
             from .result import opensim_names, to_opensim_frame
 

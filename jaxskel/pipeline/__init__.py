@@ -8,7 +8,7 @@ from ._batch import BatchResult, TrialOutcome, fit_batch
 from ._batch_io import bone_length, plot_bone_lengths
 from ._fit import fit_skeleton
 from ._options import (
-    CleanOptions, FitOptions, JointOptions, LabelOptions, MotionOptions, SegmentOptions, SettingInfo, SkeletonOptions,
+    BodyOptions, CleanOptions, FitOptions, JointOptions, LabelOptions, MotionOptions, SegmentOptions, SettingInfo, SkeletonOptions,
 )
 from ._plan import PreparedFit, StagePlan
 from ._track import track
@@ -19,7 +19,7 @@ from ._batch_io import parse_bone_spec
 from ._batch_memory import parse_memory
 
 __all__ = [
-    "BatchResult", "CleanOptions", "FitOptions", "JointOptions", "LabelOptions", "MotionOptions", "PreparedFit",
+    "BatchResult", "BodyOptions", "CleanOptions", "FitOptions", "JointOptions", "LabelOptions", "MotionOptions", "PreparedFit",
     "SegmentOptions", "SettingInfo", "SkeletonOptions", "StagePlan", "TrialOutcome", "bone_length", "fit_batch",
     "fit_skeleton", "plot_bone_lengths", "track",
 ]

@@ -284,12 +284,21 @@ class MotionOptions(_Group):
         flat="ik_lowpass", advanced=False)
 
 
+@dataclasses.dataclass(frozen=True)
+class BodyOptions(_Group):
+    """The named body (:func:`jaxskel.anatomy.identify`)."""
+
+    enabled: bool = setting(True, BOOL, "name the body parts of a human skeleton (pelvis, thigh_l, ...) and "
+                            "its joints (knee_l, ...)", flat="anatomy", flag="--no-anatomy", advanced=False)
+
+
 _GROUPS = {"clean": CleanOptions, "labels": LabelOptions, "segment": SegmentOptions, "joints": JointOptions,
-           "skeleton": SkeletonOptions, "motion": MotionOptions}
+           "skeleton": SkeletonOptions, "motion": MotionOptions, "body": BodyOptions}
 
 #: The settings a result file records (``/diagnostics`` ``settings``), by flat name.
 RECORDED = ("n_segments", "root", "clean_data", "merge_labels", "alpha", "alpha_tree", "method", "topology_frames",
-            "rigid", "ik", "seed", "confirm_merges", "hinge_centres", "joint_centres", "ik_lowpass", "pose_check")
+            "rigid", "ik", "seed", "confirm_merges", "hinge_centres", "joint_centres", "ik_lowpass", "pose_check",
+            "anatomy")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -365,6 +374,7 @@ class FitOptions:
     joints: JointOptions = dataclasses.field(default_factory=JointOptions)
     skeleton: SkeletonOptions = dataclasses.field(default_factory=SkeletonOptions)
     motion: MotionOptions = dataclasses.field(default_factory=MotionOptions)
+    body: BodyOptions = dataclasses.field(default_factory=BodyOptions)
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -30,6 +30,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .._errors import DegenerateMotionError, DegenerateMotionWarning, InputError, NonRigidMarkerWarning
+from ..anatomy import identify_result
 from ..clean import CleaningReport, Lowpassed, check_cutoff, clean, lowpass_markers
 from ..io import Trial, median_extent, units_problem
 from ..joints import Topology, anchored_centres, fit_topology, joint_costs, near_ties, untested_joints
@@ -180,6 +181,7 @@ class StagePlan:
         names = ["clean", "merge labels", "segment", "joint costs", "tree joints"]
         if o.skeleton.enabled:
             names += ["rigid", "ik"] if o.motion.enabled else ["rigid"]
+            names += ["anatomy"] if o.body.enabled else []
         return tuple(names)
 
     def _more(self, *names: str) -> None:
@@ -305,7 +307,21 @@ class StagePlan:
         result = self.grow_count(prep, topology, stacklevel=stacklevel + 1)
         if self.options.labels.confirm and prep.label_mapping is not None and result.motion is not None:
             result = self._confirm_merges(prep, result)
-        return result
+        return self.name_body(prep, result)
+
+    def name_body(self, prep: PreparedFit, result: SkeletonResult) -> SkeletonResult:
+        """``result`` with its body parts (:func:`jaxskel.anatomy.identify_result`), as the
+        options ask: the parts name the segments (where the caller gave no names) and the
+        skeleton's segments, so that a tracked take inherits them."""
+        if not (self.options.body.enabled and result.skeleton is not None):
+            return result
+        with self.stage(prep, "anatomy"):
+            anatomy = identify_result(result)
+        names = result.segment_names if self.segment_names is not None else anatomy.segment_names(result.segment_names)
+        return dataclasses.replace(
+            result, anatomy=anatomy, segment_names=names, timings=dict(prep.timings),
+            skeleton=dataclasses.replace(result.skeleton, segment_names=names),
+        )
 
     def fit(self, trial_or_trials: Trial | Sequence[Trial], *, stacklevel: int = 2) -> SkeletonResult:
         """The whole plan: :meth:`prepare`, then :meth:`complete` (warnings ``stacklevel``

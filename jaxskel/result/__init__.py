@@ -11,6 +11,7 @@ from ._osim import export_osim, opensim_frame, opensim_names, to_opensim_frame
 from ._result import SkeletonResult
 from ._skeleton_file import load_skeleton
 from ._tracked import TrackedTrial
+from ._virtual import fitted_markers_trial, with_joint_centres
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
@@ -21,5 +22,6 @@ from ._summary import (
 
 __all__ = [
     "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "TrackedTrial", "export_bvh", "export_osim",
-    "load_anatomy", "load_result", "load_skeleton", "opensim_frame", "opensim_names", "read_bvh", "to_opensim_frame",
+    "fitted_markers_trial", "load_anatomy", "load_result", "load_skeleton", "opensim_frame", "opensim_names",
+    "read_bvh", "to_opensim_frame", "with_joint_centres",
 ]

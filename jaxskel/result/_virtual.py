@@ -4,8 +4,9 @@ Joint ``j`` (``skeleton.edges[j]``, parent -> child) becomes one marker at
 ``motion.joint_positions[:, j]`` (metres, the recording's frame; NaN where the frame is not
 posed). Its label is the lab name of the joint centre (:data:`jaxskel.anatomy.VIRTUAL_MARKER`,
 Plug-in Gait style: ``RHJC`` the right hip, ``LKJC`` the left knee, ``RAJC``, ``RSJC``,
-``REJC``, ``RWJC``, ...) when a humanoid :class:`jaxskel.anatomy.Anatomy` names the child
-segment's part, else ``<child segment>_JC`` (the segment's name as an ASCII identifier,
+``REJC``, ``RWJC``, ...) when a humanoid :class:`jaxskel.anatomy.Anatomy` names the parts
+of both its segments (:func:`jaxskel.anatomy.joint_between`: the tree's edge may run either
+way), else ``<child segment>_JC`` (the segment's name as an ASCII identifier,
 :func:`jaxskel.result._export_names.ascii_names`). A label the trial already has gets
 ``_2``, ``_3``, ... so no marker is shadowed.
 """
@@ -29,15 +30,15 @@ __all__ = ["fitted_markers_trial", "joint_centre_labels", "with_joint_centres"]
 
 def joint_centre_labels(skeleton: Skeleton, anatomy: Anatomy | None = None) -> tuple[str, ...]:
     """(J,) the virtual-marker label of every joint (module docstring), before de-duplication."""
-    from ..anatomy import VIRTUAL_MARKER, joint_name
+    from ..anatomy import VIRTUAL_MARKER, joint_between
 
     if anatomy is not None and len(anatomy.parts) != skeleton.n_segments:
         raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {skeleton.n_segments}")
     humanoid = anatomy is not None and anatomy.humanoid
     segment = ascii_names(skeleton.names())
     return tuple(
-        (humanoid and VIRTUAL_MARKER.get(joint_name(anatomy.parts[c]))) or f"{segment[c]}_JC"
-        for c in np.asarray(skeleton.edges, dtype=int)[:, 1].tolist()
+        (humanoid and VIRTUAL_MARKER.get(joint_between(anatomy.parts[p], anatomy.parts[c]))) or f"{segment[c]}_JC"
+        for p, c in np.asarray(skeleton.edges, dtype=int).tolist()
     )
 
 
