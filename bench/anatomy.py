@@ -28,7 +28,9 @@ import warnings
 from pathlib import Path
 
 import jaxskel
-from jaxskel.anatomy import identify_result
+import numpy as np
+
+from jaxskel.anatomy import identify, identify_result
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "anatomy"))
@@ -59,13 +61,22 @@ def fitted(rel: str, cache: Path):
     return result
 
 
+def _axis_name(v: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(v)))
+    exact = np.isclose(abs(v[i]), 1.0)
+    return ("-" if v[i] < 0 else "") + "xyz"[i] + ("" if exact else f" ({abs(v[i]):.2f})")
+
+
 def judge(rel: str, cache: Path) -> dict:
     result = fitted(rel, cache)
     t0 = time.perf_counter()
     anatomy = identify_result(result)
     seconds = time.perf_counter() - t0
     right, scored, swapped = score(anatomy.parts, result_truth(result))
+    auto = identify(result.skeleton, result.motion, up_axis="auto")
+    same = auto.parts == anatomy.parts
     return {
+        "auto_up": f"{_axis_name(auto.up)} ({'same parts' if same else 'other parts'})", "up_axis": result.trial.up_axis,
         "recording": rel, "segments": result.skeleton.n_segments, "right": right, "scored": scored,
         "swapped": swapped, "humanoid": anatomy.humanoid, "seconds": seconds, "notes": anatomy.notes,
     }
@@ -79,17 +90,18 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     rows = [judge(rel, args.cache) for rel in RECORDINGS if args.only in rel]
     lines = [
-        "| recording | segments | right / scored | swapped | humanoid |",
-        "|---|---:|---:|---:|---|",
+        "| recording | segments | right / scored | swapped | humanoid | up axis | up found (`auto`) |",
+        "|---|---:|---:|---:|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['recording']} | {r['segments']} | {r['right']} / {r['scored']} | {r['swapped']} | {r['humanoid']} |"
+            f"| {r['recording']} | {r['segments']} | {r['right']} / {r['scored']} | {r['swapped']} | {r['humanoid']} "
+            f"| {r['up_axis']} | {r['auto_up']} |"
         )
         print(f"{r['recording']:50s} {r['right']:3d} / {r['scored']:3d} right, {r['swapped']} swapped"
-              f" ({r['seconds']:.2f} s)", flush=True)
+              f", up {r['up_axis']}, auto {r['auto_up']} ({r['seconds']:.2f} s)", flush=True)
     total = [sum(r[k] for r in rows) for k in ("right", "scored", "swapped")]
-    lines.append(f"| **all** | | {total[0]} / {total[1]} | {total[2]} | |")
+    lines.append(f"| **all** | | {total[0]} / {total[1]} | {total[2]} | | | |")
     print(f"{'all':50s} {total[0]:3d} / {total[1]:3d} right, {total[2]} swapped")
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)

@@ -197,7 +197,16 @@ def test_the_bundled_demo_is_named_from_its_rest_pose():
 
 
 #: Measured levels below the target: recording -> reason (strict xfail).
-BELOW_TARGET: dict[str, str] = {}
+BELOW_TARGET: dict[str, str] = {
+    "auto_marker_label/PronetoRun01.c3d": "15/16 right, 0 swapped (the head hangs in an arm chain)",
+    "nimblephysics/cmu_02_05.c3d": "13/14 right, 0 swapped (a shoulder segment named clavicle, truth thorax)",
+    "numediart/HDM_bd_05-01_01_120.c3d": "0/17 right, 0 swapped (not named)",
+    "dynamic_clustering_hdm05/HDM_dg_06-03_03_120.c3d": "3/13 right, 0 swapped",
+    "nimblephysics/squat.c3d": "0/11 right, 0 swapped (not named)",
+    "pycgm/Movement_trial.c3d": "6/11 right, 0 swapped",
+    "kineticstoolkit/kinematics_tennis_serve.c3d": "0/16 right, 0 swapped (not named)",
+    "kineticstoolkit/kinematics_basket_sprint.c3d": "0/1 right, 0 swapped (not named)",
+}
 
 RECORDINGS = (
     "auto_marker_label/PronetoRun01.c3d", "nimblephysics/cmu_02_05.c3d", "c3d_to_xyz_cmu/01_01.c3d",
