@@ -617,7 +617,7 @@ def _demo(args: argparse.Namespace) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(
         plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
-        parameterize=False, overwrite=True, quiet=args.quiet,
+        bvh_units="cm", bvh_names=None, trc_joint_centres=False, parameterize=False, overwrite=True, quiet=args.quiet,
     )  # and every setting at its default (options_from_args)
     if not args.quiet:
         print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")

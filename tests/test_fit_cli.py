@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxskel
+from jaxskel.result._bvh import bvh_frame
 from jaxskel import synth
 from jaxskel.cli import main
 
@@ -431,12 +432,15 @@ def test_two_trials_fit_together_and_export_bvh_per_trial(linkage_trial, tmp_pat
     r = jaxskel.fit_skeleton([a, b])
     assert r.trial_bounds == ((0, a.n_frames), (a.n_frames, trial.n_frames))
     assert r.n_segments == 3 and len(r.edges) == 2
-    # BVH straight from the result: segment names, the recording's rate, one trial's frames.
+    # BVH straight from the result: segment names, the recording's rate, one trial's frames, Y up in centimetres.
+    assert not r.anatomy.humanoid  # a linkage: named by its segments, the lab frame turned to Y up
     second = jaxskel.result.read_bvh(r.export_bvh(tmp_path / "second.bvh", trial=1))
     assert set(second.names) == set(r.segment_names)
     assert second.n_frames == b.n_frames and second.frame_time == pytest.approx(1.0 / trial.rate)
     root = second.names.index(r.segment_names[r.skeleton.root])
-    np.testing.assert_allclose(second.world_positions()[:, root], r.motion.root_position[a.n_frames :], atol=1e-6)
+    lab_to_bvh = bvh_frame(r.anatomy, r.trial.up_axis) * 100.0
+    np.testing.assert_allclose(second.world_positions()[:, root], r.motion.root_position[a.n_frames :] @ lab_to_bvh.T,
+                               atol=1e-4)
     assert jaxskel.result.read_bvh(r.export_bvh(tmp_path / "all.bvh")).n_frames == trial.n_frames
     with pytest.raises(jaxskel.InputError, match="trial must be an index 0..1"):
         r.export_bvh(tmp_path / "third.bvh", trial=2)

@@ -161,10 +161,19 @@ class Anatomy:
         return self.parts.index(part) if part in self.parts else None
 
     def segment_names(self, fallback: Sequence[str]) -> tuple[str, ...]:
-        """Each segment's part, or its ``fallback`` name where the part is not identified."""
+        """Each segment's part, or its ``fallback`` name where the part is not identified;
+        distinct: a part that names several segments (a one-marker twig on its host's part)
+        is ``part``, ``part_2``, ... in segment order."""
         if len(fallback) != len(self.parts):
             raise InputError(f"{len(fallback)} fallback names for {len(self.parts)} segments")
-        return tuple(p or f for p, f in zip(self.parts, fallback))
+        names: list[str] = []
+        for p, f in zip(self.parts, fallback):
+            name, k = p or f, 1
+            while name in names or (p and name in fallback and name != f):
+                k += 1
+                name = f"{p or f}_{k}"
+            names.append(name)
+        return tuple(names)
 
     def joint_names(self, edges: np.ndarray, fallback: Sequence[str]) -> tuple[str, ...]:
         """(J,) each tree joint's anatomical name (:func:`joint_between` of its two segments'

@@ -67,3 +67,9 @@ def test_an_anatomy_names_segments_and_joints_where_it_knows_the_parts():
     assert anatomy.joint_names(edges, ("a", "b", "c")) == ("hip_r", "knee_r", "c")
     with pytest.raises(jaxskel.InputError, match="fallback"):
         anatomy.segment_names(("W",))
+
+
+def test_segment_names_stay_distinct_when_a_part_names_two_segments():
+    anatomy = Anatomy(parts=("hand_l", "hand_l", ""), confidence=[1, 0.5, 0], humanoid=True, up=[0, 0, 1],
+                      front=[1, 0, 0])
+    assert anatomy.segment_names(("LHA", "LFIN", "X")) == ("hand_l", "hand_l_2", "X")

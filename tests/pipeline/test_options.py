@@ -121,8 +121,10 @@ def test_a_bad_flag_value_is_a_clear_error(capsys):
 
 
 def test_stage_plan_lists_the_stages_the_options_run():
-    assert StagePlan().stages == ("clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik")
-    assert StagePlan(FitOptions.from_settings(ik=False)).stages[-1] == "rigid"
+    assert StagePlan().stages == ("clean", "merge labels", "segment", "joint costs", "tree joints", "rigid", "ik",
+                                  "anatomy")
+    assert StagePlan(FitOptions.from_settings(ik=False)).stages[-2:] == ("rigid", "anatomy")
+    assert StagePlan(FitOptions.from_settings(anatomy=False)).stages[-1] == "ik"
     assert "rigid" not in StagePlan(FitOptions.from_settings(rigid=False)).stages
 
 
