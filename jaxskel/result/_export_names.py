@@ -63,18 +63,23 @@ def ascii_name(raw: str) -> str:
     return text or "segment"
 
 
-def ascii_names(names: Iterable[str], reserved: Iterable[str] = ()) -> tuple[str, ...]:
-    """``names`` as distinct ASCII identifiers (module docstring); ``reserved`` names are taken."""
+def distinct(bases: Iterable[str], reserved: Iterable[str] = ()) -> tuple[str, ...]:
+    """``bases`` made distinct, in order: a name already taken (by an earlier one or by
+    ``reserved``) gets ``_2``, ``_3``, ..."""
     taken = set(reserved)
     out = []
-    for raw in names:
-        base = ascii_name(raw)
+    for base in bases:
         name, k = base, 2
         while name in taken:
             name, k = f"{base}_{k}", k + 1
         taken.add(name)
         out.append(name)
     return tuple(out)
+
+
+def ascii_names(names: Iterable[str], reserved: Iterable[str] = ()) -> tuple[str, ...]:
+    """``names`` as distinct ASCII identifiers (module docstring); ``reserved`` names are taken."""
+    return distinct((ascii_name(raw) for raw in names), reserved)
 
 
 def part_names(

@@ -79,7 +79,7 @@ from .._errors import InputError
 from .._version import __version__
 from ..io import atomic_output, check_output, rotation_between_axes
 from ._bvh import euler_angles
-from ._export_names import part_names
+from ._export_names import distinct, part_names
 
 if TYPE_CHECKING:
     from ..anatomy import Anatomy
@@ -143,16 +143,7 @@ def opensim_names(names: Iterable[str], reserved: Iterable[str] = ()) -> tuple[s
     name becomes ``unnamed``, and a name already taken (by an earlier name or by
     ``reserved``) gets ``_2``, ``_3``, ... A valid name is kept as it is.
     """
-    taken = set(reserved)
-    out = []
-    for raw in names:
-        base = _valid_name(raw)
-        name, k = base, 2
-        while name in taken:
-            name, k = f"{base}_{k}", k + 1
-        taken.add(name)
-        out.append(name)
-    return tuple(out)
+    return distinct((_valid_name(raw) for raw in names), reserved)
 
 
 # ------------------------------------------------------------------ the maths
