@@ -144,6 +144,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--trc", type=Path, default=None,
                         help="export the fitted (gap-filled) markers as TRC (with --osim: in the model's frame, Y up, "
                         "and names, ready for OpenSim's inverse kinematics)")
+        sp.add_argument("--angles", type=Path, default=None, metavar="FILE.sto",
+                        help="write the anatomical joint angles of a human body as an OpenSim storage file (degrees; "
+                        "Grood-Suntay axes, ISB signs: knee_l_flexion, hip_r_adduction, ...)")
         sp.add_argument("--osim", type=Path, default=None,
                         help="export the skeleton as an OpenSim 4 model (.osim): a body per segment, ball joints "
                         "(pin joints at hinges), the markers; Y up; mass and inertia are placeholders")
@@ -222,6 +225,8 @@ def _parser() -> argparse.ArgumentParser:
     track.add_argument("-o", "--outdir", type=Path, required=True, help="output folder")
     track.add_argument("--bvh", action="store_true", help="also write OUTDIR/<trial>.bvh, on the calibration's rig")
     track.add_argument("--trc", action="store_true", help="also write OUTDIR/<trial>.trc, the fitted markers")
+    track.add_argument("--angles", action="store_true",
+                       help="also write OUTDIR/<trial>.sto, the joint angles (the calibration must name a human body)")
     track.add_argument("--overwrite", action="store_true", help="replace existing output files")
     track.add_argument("--batch-size", type=int, default=16, help="most trials posed by one solve (default 16)")
     track.add_argument("--scheduler", default=None, help="Dask scheduler address: track on the cluster's workers")
@@ -265,7 +270,7 @@ def _calibration_window(text: str) -> tuple[int, int] | tuple[float, float] | st
 
 #: the file kind (jaxskel.io._output_check.OUTPUT_KINDS) each output flag of ``jaxskel fit`` writes
 FIT_OUTPUTS = {"-o": "result", "--plot": "image", "--plot-angles": "image", "--bvh": "bvh", "--trc": "trc",
-               "--osim": "osim"}
+               "--osim": "osim", "--angles": "sto"}
 
 
 def load_options(parser: argparse.ArgumentParser) -> None:
@@ -401,12 +406,29 @@ def _check_batch_outputs(args: argparse.Namespace, summary: str = "summary.csv")
             raise jaxskel.InputError(f"{plot} exists; pass --overwrite to replace it")
 
 
+def _write_angles(result: Any, path: Path | None, overwrite: bool, written: list[Path]) -> Exception | None:
+    """Write ``--angles`` (the joint angles as ``.sto``) where given and the body is human;
+    returns why not (the fit's other outputs stand), else None."""
+    import jaxskel
+    from .result import write_angles_sto
+
+    if path is None:
+        return None
+    try:
+        angles = result.joint_angles()
+    except jaxskel.InputError as error:
+        return error
+    write_angles_sto(angles, path, overwrite=overwrite)
+    written.append(path)
+    return None
+
+
 def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     import jaxskel
 
     quiet = getattr(args, "quiet", False)
     options = options_from_args(args)
-    osim = getattr(args, "osim", None)
+    osim, angles = getattr(args, "osim", None), getattr(args, "angles", None)
     window, calibration_trial = getattr(args, "calibration", None), getattr(args, "calibration_trial", None)
     plot_angles = getattr(args, "plot_angles", None)
     given = [flag for flag, value in (("--calibration", window), ("--calibration-trial", calibration_trial),
@@ -420,13 +442,16 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if calibration_trial is not None and not calibration_trial.is_file():
         raise jaxskel.InputError(f"--calibration-trial {calibration_trial}: no such recording")
     _check_outputs(inputs, {"-o": output, "--plot": args.plot, "--plot-angles": plot_angles, "--bvh": args.bvh,
-                            "--trc": args.trc, "--osim": osim}, args.overwrite)
+                            "--trc": args.trc, "--osim": osim, "--angles": angles}, args.overwrite)
     needs_motion = [flag for flag, on in (("--parameterize", args.parameterize), ("--plot-angles", plot_angles),
-                                          ("--bvh", args.bvh), ("--trc", args.trc), ("--osim", osim)) if on]
+                                          ("--bvh", args.bvh), ("--trc", args.trc), ("--osim", osim),
+                                          ("--angles", angles)) if on]
     if needs_motion and not (options.skeleton.enabled and options.motion.enabled):  # before any work
         raise jaxskel.InputError(
             f"{', '.join(needs_motion)} need(s) the rigid skeleton and IK; drop --no-rigid / --no-ik"
         )
+    if angles is not None and not options.body.enabled:
+        raise jaxskel.InputError("--angles needs the named body; drop --no-anatomy")
     if output.parent and not output.parent.exists():
         output.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -514,9 +539,13 @@ def _fit(inputs: list[Path], output: Path, args: argparse.Namespace) -> int:
     if osim is not None:
         result.export_osim(osim, overwrite=args.overwrite)
         written.append(osim)
+    angles_error = _write_angles(result, angles, args.overwrite, written)
     if not quiet:
         print(result.summary())
         print(f"wrote {', '.join(str(w) for w in written)} in {time.perf_counter() - t0:.1f} s")
+    if angles_error is not None:
+        raise jaxskel.InputError(f"--angles {angles} was not written: {angles_error}; written: "
+                                 f"{', '.join(str(w) for w in written)}")
     if sd06_error is not None:
         skipped = f" and {plot_angles} was not written" if plot_angles is not None else ""
         raise type(sd06_error)(
@@ -566,7 +595,8 @@ def _track(args: argparse.Namespace) -> int:
     settings = track_settings(options_from_args(args))
     with _dask_cluster(args) as scheduler:
         batch = jaxskel.track(
-            args.skeleton, list(args.trials), args.outdir, bvh=args.bvh, trc=args.trc, overwrite=args.overwrite,
+            args.skeleton, list(args.trials), args.outdir, bvh=args.bvh, trc=args.trc, angles=args.angles,
+            overwrite=args.overwrite,
             batch_size=args.batch_size, scheduler=scheduler, progress=not args.quiet, units=args.units,
             up_axis=args.up_axis, **settings,
         )
@@ -617,7 +647,7 @@ def _demo(args: argparse.Namespace) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(
         plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
-        bvh_units="cm", bvh_names=None, trc_joint_centres=False, parameterize=False, overwrite=True, quiet=args.quiet,
+        angles=outdir / "joint_angles.sto", bvh_units="cm", bvh_names=None, trc_joint_centres=False, parameterize=False, overwrite=True, quiet=args.quiet,
     )  # and every setting at its default (options_from_args)
     if not args.quiet:
         print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")

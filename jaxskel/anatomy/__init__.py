@@ -11,9 +11,11 @@ from ._vocabulary import (
 )
 from ._identify import identify, identify_result
 from ._options import AnatomyOptions
+from ._angles import COMPONENTS, AngleOptions, JointAngles, anatomical_frames, joint_angles
 
 __all__ = [
     "AnatomyOptions", "identify", "identify_result",
+    "AngleOptions", "COMPONENTS", "JointAngles", "anatomical_frames", "joint_angles",
     "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
     "joint_name", "mirror", "side_of",
 ]

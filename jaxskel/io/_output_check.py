@@ -27,6 +27,7 @@ OUTPUT_KINDS: dict[str, tuple[str, tuple[str, ...] | None, str]] = {
     "osim": ("an OpenSim model", (".osim",), "skeleton.osim"),
     "image": ("a figure", None, "summary.png"),
     "table": ("a table", (".csv",), "summary.csv"),
+    "sto": ("an OpenSim storage file", (".sto", ".mot"), "angles.sto"),
 }
 
 

@@ -43,7 +43,7 @@ from .._runtime.precision import float64_scope
 from ..clean import clean, lowpass_markers
 from ..io import Trial, check_load_arguments, check_output, refuse_input
 from ..anatomy import Anatomy
-from ..result import TrackedTrial, load_anatomy, load_skeleton
+from ..result import TrackedTrial, load_anatomy, load_skeleton, write_angles_sto
 from ..skeleton import Skeleton, inverse_kinematics, measured_rms, segment_members, solver_shape
 from ._batch import BatchResult
 from ._local import Item, TrialOutcome, failed
@@ -61,8 +61,9 @@ TRACK_GROUPS = ("clean", "motion")
 #: host memory of a solve (about 2 kB per frame and marker slot).
 GROUP_FRAMES = 200_000
 
-#: What a tracked trial writes next to its result file, by ``track``'s flag.
-EXPORTS = {"bvh": ".bvh", "trc": ".trc"}
+#: What a tracked trial writes next to its result file, by ``track``'s flag: its suffix and
+#: its kind (:data:`jaxskel.io._output_check.OUTPUT_KINDS`).
+EXPORTS = {"bvh": (".bvh", "bvh"), "trc": (".trc", "trc"), "angles": (".sto", "sto")}
 
 
 # ------------------------------------------------------------------ markers
@@ -372,8 +373,8 @@ def _outputs(items: list[Item], outdir: Path, exports: Sequence[str], overwrite:
         inputs.append(calibration.path)
     out = []
     for it in items:
-        paths = [outdir / f"{it.name}.h5"] + [outdir / f"{it.name}{EXPORTS[e]}" for e in exports]
-        for path, kind in zip(paths, ["result", *exports]):
+        paths = [outdir / f"{it.name}.h5"] + [outdir / f"{it.name}{EXPORTS[e][0]}" for e in exports]
+        for path, kind in zip(paths, ["result", *(EXPORTS[e][1] for e in exports)]):
             key = os.path.normcase(os.path.abspath(path))
             if key in taken:
                 raise InputError(
@@ -409,6 +410,7 @@ def track(
     options: FitOptions | None = None,
     bvh: bool = False,
     trc: bool = False,
+    angles: bool = False,
     overwrite: bool = False,
     batch_size: int = 16,
     scheduler: Any = None,
@@ -430,8 +432,10 @@ def track(
     outdir
         Write ``outdir/<trial name>.h5`` per trial (the result schema, docs/result-format.md),
         and with ``bvh`` / ``trc`` the BVH on the calibration's rig and the fitted,
-        gap-filled markers as TRC. Every output is checked before any work; an existing file
-        is replaced only with ``overwrite``.
+        gap-filled markers as TRC, with ``angles`` the anatomical joint angles as an OpenSim
+        ``.sto`` (:meth:`jaxskel.TrackedTrial.joint_angles`; the calibration must have named a
+        human body). Every output is checked before any work; an existing file is replaced
+        only with ``overwrite``.
     options, settings
         The cleaning and IK settings (:class:`jaxskel.FitOptions` groups ``clean`` and
         ``motion``, or their flat names: ``ik_lowpass=None``); default the fit's defaults.
@@ -460,14 +464,18 @@ def track(
     options = track_options(options, settings)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise InputError(f"batch_size must be a positive whole number, got {batch_size!r}")
-    for name, value in (("bvh", bvh), ("trc", trc), ("overwrite", overwrite), ("progress", progress)):
+    for name, value in (("bvh", bvh), ("trc", trc), ("angles", angles), ("overwrite", overwrite),
+                        ("progress", progress)):
         if not isinstance(value, bool):
             raise InputError(f"{name} must be True or False, got {value!r}")
     skel, calibration = _skeleton_of(skeleton)
     items = _items(trials, units, up_axis)
-    exports = [e for e, on in (("bvh", bvh), ("trc", trc)) if on]
+    exports = [e for e, on in (("bvh", bvh), ("trc", trc), ("angles", angles)) if on]
     if exports and outdir is None:
-        raise InputError("bvh=True / trc=True write files: give outdir")
+        raise InputError("bvh=True / trc=True / angles=True write files: give outdir")
+    if angles and (calibration.anatomy is None or not calibration.anatomy.humanoid):
+        raise InputError("angles=True needs a calibration that named a human body (its result has no human "
+                         "/anatomy); refit the calibration with anatomy=True, the default")
     out = None
     if outdir is not None:
         out = Path(outdir)
@@ -565,6 +573,8 @@ def _write(tracked: TrackedTrial, output: Path, exports: Sequence[str], overwrit
         tracked.export_bvh(output.with_suffix(".bvh"), overwrite=overwrite)
     if "trc" in exports:
         save_trial(tracked.fitted_trial(), output.with_suffix(".trc"), overwrite=overwrite)
+    if "angles" in exports:
+        write_angles_sto(tracked.joint_angles(), output.with_suffix(".sto"), overwrite=overwrite)
 
 
 # ------------------------------------------------------------------ Dask

@@ -4,12 +4,13 @@ export and its OpenSim model export.
 
 from __future__ import annotations
 
-from ._anatomy_file import load_anatomy
+from ._anatomy_file import load_anatomy, load_angles
 from ._bvh import BvhData, export_bvh, read_bvh
 from ._format import ResultFile, SCHEMA_VERSION, load_result
 from ._osim import export_osim, opensim_frame, opensim_names, to_opensim_frame
 from ._result import SkeletonResult
 from ._skeleton_file import load_skeleton
+from ._sto import StoTable, read_sto, write_angles_sto
 from ._tracked import TrackedTrial
 from ._virtual import fitted_markers_trial, with_joint_centres
 
@@ -21,7 +22,7 @@ from ._summary import (
 )
 
 __all__ = [
-    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "TrackedTrial", "export_bvh", "export_osim",
-    "fitted_markers_trial", "load_anatomy", "load_result", "load_skeleton", "opensim_frame", "opensim_names",
-    "read_bvh", "to_opensim_frame", "with_joint_centres",
+    "BvhData", "ResultFile", "SCHEMA_VERSION", "SkeletonResult", "StoTable", "TrackedTrial", "export_bvh",
+    "export_osim", "fitted_markers_trial", "load_anatomy", "load_angles", "load_result", "load_skeleton", "opensim_frame", "opensim_names",
+    "read_bvh", "read_sto", "to_opensim_frame", "with_joint_centres", "write_angles_sto",
 ]

@@ -11,6 +11,17 @@ Layout (docs/result-format.md):
 
 A file without ``/anatomy`` (a fit with ``anatomy=False``, or written before jaxskel named
 bodies) reads as ``None``.
+
+``/angles`` (a human body with a motion): the anatomical joint angles
+(:func:`jaxskel.anatomy.joint_angles`, its default options):
+
+* ``values`` (F, C) float, radians, positive in the named direction;
+* ``names`` (C,) str (``knee_l_flexion``) and ``joints`` (C,) str (``knee_l``);
+* ``lateral_joints``, ``lateral`` (J,) str: how each joint's flexion axis was set
+  (``functional`` or ``body``);
+* attributes ``units`` (``"rad"``), ``convention`` and ``rate`` (Hz, NaN if unknown).
+
+A file without ``/angles`` reads as ``None`` (:func:`read_angles`).
 """
 
 from __future__ import annotations
@@ -22,10 +33,13 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..anatomy import Anatomy
+from ..anatomy import Anatomy, JointAngles
 from ..io import put
 
-__all__ = ["load_anatomy", "read_anatomy", "write_anatomy"]
+__all__ = ["angles_or_none", "load_anatomy", "load_angles", "read_anatomy", "read_angles", "write_anatomy", "write_angles"]
+
+#: What ``/angles@convention`` says.
+CONVENTION = "Grood-Suntay joint coordinate system (intrinsic Z-X-Y), ISB axes and clinical signs"
 
 
 def write_anatomy(group: h5py.Group, anatomy: Anatomy) -> None:
@@ -60,3 +74,48 @@ def load_anatomy(path: str | os.PathLike[str]) -> Anatomy | None:
 
     with open_result(Path(path)) as f:
         return read_anatomy(f)
+
+
+def angles_or_none(skeleton: Any, motion: Any, anatomy: Anatomy | None) -> JointAngles | None:
+    """The joint angles a result file holds: :func:`jaxskel.anatomy.joint_angles` with its
+    defaults where there is a motion and a human anatomy that names a joint, else ``None``."""
+    from ..anatomy import joint_angles
+
+    if skeleton is None or motion is None or anatomy is None or not anatomy.humanoid:
+        return None
+    if not any(anatomy.joint_names(skeleton.edges, [""] * len(skeleton.edges))):
+        return None
+    return joint_angles(skeleton, motion, anatomy)
+
+
+def write_angles(group: h5py.Group, angles: JointAngles) -> None:
+    """Fill ``group`` (``/angles``) with ``angles`` (module docstring)."""
+    put(group, "values", np.asarray(angles.values, float))
+    put(group, "names", np.asarray(list(angles.names), dtype=str))
+    put(group, "joints", np.asarray(list(angles.joints), dtype=str))
+    put(group, "lateral_joints", np.asarray(list(angles.lateral), dtype=str))
+    put(group, "lateral", np.asarray(list(angles.lateral.values()), dtype=str))
+    group.attrs["units"] = "rad"
+    group.attrs["convention"] = CONVENTION
+    group.attrs["rate"] = float(angles.rate) if angles.rate else float("nan")
+
+
+def read_angles(f: h5py.File) -> JointAngles | None:
+    """The :class:`JointAngles` of an open result file, ``None`` where it has no ``/angles``."""
+    if "angles" not in f:
+        return None
+    g = f["angles"]
+    rate = float(g.attrs["rate"])
+    return JointAngles(
+        names=_text(g["names"][()]), joints=_text(g["joints"][()]), values=np.asarray(g["values"][()], float),
+        rate=rate if np.isfinite(rate) else None,
+        lateral=dict(zip(_text(g["lateral_joints"][()]), _text(g["lateral"][()]), strict=True)),
+    )
+
+
+def load_angles(path: str | os.PathLike[str]) -> JointAngles | None:
+    """:func:`read_angles` of the result file at ``path`` (a fit's or a tracked trial's)."""
+    from ._format import open_result
+
+    with open_result(Path(path)) as f:
+        return read_angles(f)

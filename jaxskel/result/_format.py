@@ -37,6 +37,8 @@ Schema version 1 (documented in the README, "Result file"):
   beside ``bone_lengths``) and ``/motion`` (when fitted, see docs/result-format.md);
 * ``/anatomy`` (when the fit named the body): ``segment_part``, ``segment_confidence``,
   ``notes``, attributes ``humanoid``, ``up``, ``front`` (:mod:`jaxskel.result._anatomy_file`);
+* ``/angles`` (a human body with a motion): the anatomical joint angles, ``values`` (F, C)
+  radians, ``names``, ``joints``, ``lateral`` (:mod:`jaxskel.result._anatomy_file`);
 * ``/diagnostics``: solver ``steps``/``result``/``converged`` per stage,
   ``timings`` as attributes, the cleaning report (``cleaning/duplicates`` and
   ``duplicate_of``: labels merged as copies of another), settings.
@@ -60,7 +62,7 @@ import numpy as np
 
 from .._errors import InputError, SchemaError
 from ..io import atomic_output, check_output, input_sources, put, refuse_input
-from ._anatomy_file import write_anatomy
+from ._anatomy_file import angles_or_none, write_anatomy, write_angles
 from ._skeleton_file import write_skeleton
 
 __all__ = [
@@ -155,6 +157,7 @@ def save_result(
     refuse_input(path, input_sources(result.trial), "the result file")
     seg = result.segmentation
     topo = result.topology
+    angles = angles_or_none(result.skeleton, result.motion, result.anatomy)
     with atomic_output(path, overwrite) as tmp:
         with h5py.File(tmp, "w") as f:
             write_root_attrs(f, result.trial)
@@ -237,6 +240,8 @@ def save_result(
                 write_motion(f.create_group("motion"), result.motion)
             if result.anatomy is not None:
                 write_anatomy(f.create_group("anatomy"), result.anatomy)
+            if angles is not None:
+                write_angles(f.create_group("angles"), angles)
 
             d = f.create_group("diagnostics")
             pc = topo.pair_costs

@@ -224,6 +224,21 @@ class SkeletonResult:
 
         save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
 
+    def joint_angles(self, options: Any = None) -> Any:
+        """The anatomical joint angles of the motion (:func:`jaxskel.anatomy.joint_angles`:
+        Grood–Suntay frames, ISB signs, radians), every frame of the fitted recording.
+
+        ``options`` is a :class:`jaxskel.anatomy.AngleOptions` (which joints are hinges).
+        Raises :class:`InputError` without a motion or a human :attr:`anatomy`."""
+        if self.skeleton is None or self.motion is None:
+            raise InputError("joint angles need the rigid skeleton and its motion; fit with rigid=True and ik=True "
+                             "(the defaults)")
+        if self.anatomy is None:
+            raise InputError("joint angles need the named body; fit with anatomy=True (the default; not --no-anatomy)")
+        from ..anatomy import joint_angles
+
+        return joint_angles(self.skeleton, self.motion, self.anatomy, options=options)
+
     def export_bvh(
         self,
         path: str,

@@ -6,7 +6,7 @@ A tracked trial's result file has the fit's layout where the two share a meaning
 the skeleton's markers, ``positions`` the cleaned trial in that order, ``segment``,
 ``missing`` and ``extra``), ``/segments/names``, ``/topology`` (``edges``, ``root``),
 ``/skeleton`` (the calibration's, bit for bit, so :func:`jaxskel.load_skeleton` reads it back
-from here too), ``/anatomy`` (the calibration's named body, where it has one), ``/motion`` (with ``segment_posed``) and ``/diagnostics``.
+from here too), ``/anatomy`` (the calibration's named body, where it has one), ``/angles`` (its joint angles), ``/motion`` (with ``segment_posed``) and ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from .._errors import InputError
 from ..anatomy import Anatomy
 from ..clean import CleaningReport
 from ..io import Trial, atomic_output, check_output, input_sources, put, refuse_input
@@ -134,6 +135,16 @@ class TrackedTrial:
         """Write the tracked trial's result file (module docstring), atomically."""
         return save_tracked(self, path, overwrite=overwrite)
 
+    def joint_angles(self, options: Any = None) -> Any:
+        """The take's anatomical joint angles (:func:`jaxskel.anatomy.joint_angles`) on the
+        calibration's named body; :class:`InputError` where the calibration named none."""
+        if self.anatomy is None:
+            raise InputError("joint angles need the named body; the calibration's result has no /anatomy "
+                             "(refit it with anatomy=True, the default)")
+        from ..anatomy import joint_angles
+
+        return joint_angles(self.skeleton, self.motion, self.anatomy, options=options)
+
     def export_bvh(self, path: str | os.PathLike[str], *, overwrite: bool = False, units: str = "cm",
                    rotation_order: str = "ZXY", names: str | Mapping[str, str] | None = None) -> Path:
         """The motion as BVH on the calibration's rig (:func:`jaxskel.result.export_bvh`): every
@@ -150,7 +161,7 @@ class TrackedTrial:
 def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
     """Write ``tracked`` to ``path`` (``.h5``; never over an input or, without ``overwrite``, a file)."""
     from ._format import jsonable, write_cleaning, write_motion, write_root_attrs
-    from ._anatomy_file import write_anatomy
+    from ._anatomy_file import angles_or_none, write_anatomy, write_angles
     from ._skeleton_file import write_skeleton
 
     path = check_output(path, "result")
@@ -163,6 +174,7 @@ def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwri
         skeleton.marker_segment[used[source_of.get(lab, lab)]] if source_of.get(lab, lab) in used else -1
         for lab in tracked.input_labels
     ], dtype=np.int64)
+    angles = angles_or_none(skeleton, tracked.motion, tracked.anatomy)
     with atomic_output(path, overwrite) as tmp, h5py.File(tmp, "w") as f:
         write_root_attrs(f, trial)
         f.attrs["kind"] = "tracked"
@@ -185,6 +197,8 @@ def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwri
         write_skeleton(f.create_group("skeleton"), skeleton)
         if tracked.anatomy is not None:
             write_anatomy(f.create_group("anatomy"), tracked.anatomy)
+        if angles is not None:
+            write_angles(f.create_group("angles"), angles)
         m = f.create_group("motion")
         write_motion(m, tracked.motion)
         put(m, "segment_posed", np.asarray(tracked.segment_posed))

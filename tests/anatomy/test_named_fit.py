@@ -22,9 +22,20 @@ def body():
 
 
 @pytest.fixture(scope="module")
-def fitted(body):
-    trial, _ = synth.simulate(body, motion="calibration", duration=8.0, noise=0.0005, seed=2)
-    return jaxskel.fit_skeleton(trial)
+def simulated(body):
+    return synth.simulate(body, motion="calibration", duration=8.0, noise=0.0005, seed=2)
+
+
+@pytest.fixture(scope="module")
+def fitted(simulated):
+    return jaxskel.fit_skeleton(simulated[0])
+
+
+def rms_deg(a, b) -> float:
+    return float(np.rad2deg(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2))))
+
+
+HINGES = [(f"{side}_{joint}", f"{joint}_{side}_flexion") for side in "lr" for joint in ("knee", "elbow")]
 
 
 @pytest.fixture(scope="module")
@@ -77,3 +88,64 @@ def test_a_tracked_take_inherits_the_names_and_the_body(fitted, saved, body, tmp
         assert tracked is not None and tracked.parts == fitted.anatomy.parts
         names = [str(n) for n in jaxskel.load_result(outcome.output).segments.names]
         assert names == list(fitted.segment_names)
+
+
+def test_knee_and_elbow_flexion_of_the_fit_match_the_truth_within_two_degrees(fitted, simulated):
+    truth = simulated[1]
+    angles = fitted.joint_angles()
+    for true_name, ours in HINGES:
+        true = truth.joint_angles[truth.joint_names.index(true_name)][:, 0]
+        assert rms_deg(angles[ours], true) < 2.0, ours
+        assert angles.lateral[ours.rsplit("_", 1)[0]] == "functional"
+    assert {"hip_l_flexion", "hip_r_adduction", "ankle_l_dorsiflexion", "shoulder_r_abduction"} <= set(angles.names)
+
+
+def test_the_angles_are_in_the_result_file(fitted, saved):
+    back = jaxskel.result.load_angles(saved)
+    angles = fitted.joint_angles()
+    assert back.names == angles.names and back.joints == angles.joints and back.lateral == angles.lateral
+    np.testing.assert_allclose(back.values, angles.values)
+    assert back.rate == fitted.trial.rate
+
+
+def test_a_tracked_take_has_its_angles_in_its_file_and_its_storage_file(fitted, saved, body, tmp_path):
+    take, truth = synth.simulate(body, motion="walk", duration=2.0, noise=0.0005, seed=5)
+    jaxskel.save_trial(take, tmp_path / "walk.h5")
+    assert main(["track", str(saved), str(tmp_path / "walk.h5"), "-o", str(tmp_path / "out"), "--angles",
+                 "--quiet"]) == 0
+    table = jaxskel.result.read_sto(tmp_path / "out" / "walk.sto")
+    stored = jaxskel.result.load_angles(tmp_path / "out" / "walk.h5")
+    np.testing.assert_allclose(table.values, stored.degrees, atol=1e-6)
+    for true_name, ours in HINGES[:1]:
+        true = truth.joint_angles[truth.joint_names.index(true_name)][:, 0]
+        assert np.ptp(true) > np.deg2rad(30)  # the walk bends the knee
+        assert rms_deg(np.deg2rad(table.column(ours)), true) < 2.0
+
+
+def test_angles_need_a_human_calibration_before_any_work(tmp_path, body):
+    linkage = synth.linkage()
+    trial, _ = synth.simulate(linkage, motion="calibration", duration=4.0, seed=0)
+    plain = jaxskel.fit_skeleton(trial, ik=False, rigid=True)
+    assert plain.anatomy is not None and not plain.anatomy.humanoid
+    with pytest.raises(jaxskel.InputError, match="human"):
+        jaxskel.track(plain, trial, outdir=tmp_path / "t", angles=True)
+    assert not (tmp_path / "t").exists()
+
+
+def test_cli_fit_writes_the_angles_as_a_storage_file_opensim_reads(body, tmp_path, capsys):
+    import opensim
+
+    trial, truth = synth.simulate(body, motion="calibration", duration=6.0, noise=0.0005, seed=7)
+    source, out, sto = tmp_path / "take.h5", tmp_path / "fit.h5", tmp_path / "angles.sto"
+    jaxskel.save_trial(trial, source)
+    sto.write_text("keep me")
+    assert main(["fit", str(source), "-o", str(out), "--angles", str(sto)]) == 2  # checked before the fit
+    assert "exists" in capsys.readouterr().err and sto.read_text() == "keep me" and not out.exists()
+    assert main(["fit", str(source), "-o", str(out), "--angles", str(sto), "--no-anatomy", "--overwrite"]) == 2
+    assert "--no-anatomy" in capsys.readouterr().err and not out.exists()
+
+    assert main(["fit", str(source), "-o", str(out), "--angles", str(sto), "--overwrite", "--quiet"]) == 0
+    storage = opensim.TimeSeriesTable(str(sto))
+    knee = np.deg2rad(storage.getDependentColumn("knee_r_flexion").to_numpy())
+    true = truth.joint_angles[truth.joint_names.index("r_knee")][:, 0]
+    assert storage.getNumRows() == trial.n_frames and rms_deg(knee, true) < 2.0
