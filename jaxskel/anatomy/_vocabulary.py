@@ -160,19 +160,41 @@ class Anatomy:
         """The segment named ``part``, or None."""
         return self.parts.index(part) if part in self.parts else None
 
-    def segment_names(self, fallback: Sequence[str]) -> tuple[str, ...]:
+    def main_segments(self, edges: np.ndarray | None = None) -> np.ndarray:
+        """(S,) bool: the segment that carries its part's plain name. Where one part names
+        several segments (a one-marker twig on its host's part, a limb cut in two), the one
+        joined to the most segments of other named parts in the tree ``edges`` (the piece in
+        the chain), the first in segment order on a tie or without ``edges``; every
+        segment with a part of its own, and none without a part."""
+        links = np.zeros(len(self.parts), int)
+        for a, b in np.asarray(edges if edges is not None else [], int).reshape(-1, 2).tolist():
+            if self.parts[a] and self.parts[b] and self.parts[a] != self.parts[b]:
+                links[a] += 1
+                links[b] += 1
+        main = np.zeros(len(self.parts), bool)
+        for part in set(self.parts) - {""}:
+            members = [s for s, p in enumerate(self.parts) if p == part]
+            main[max(members, key=lambda s: (links[s], -s))] = True
+        return main
+
+    def segment_names(self, fallback: Sequence[str], edges: np.ndarray | None = None) -> tuple[str, ...]:
         """Each segment's part, or its ``fallback`` name where the part is not identified;
-        distinct: a part that names several segments (a one-marker twig on its host's part)
-        is ``part``, ``part_2``, ... in segment order."""
+        distinct: a part that names several segments is ``part`` on its
+        :meth:`main_segments` one (given the tree ``edges``) and ``part_2``, ... on the others."""
         if len(fallback) != len(self.parts):
             raise InputError(f"{len(fallback)} fallback names for {len(self.parts)} segments")
-        names: list[str] = []
-        for p, f in zip(self.parts, fallback):
+        main = self.main_segments(edges)
+        names: list[str | None] = [p if m else None for p, m in zip(self.parts, main)]
+        taken = set(n for n in names if n) | {f for f, p in zip(fallback, self.parts) if not p}
+        for s, (p, f) in enumerate(zip(self.parts, fallback)):
+            if names[s] is not None:
+                continue
             name, k = p or f, 1
-            while name in names or (p and name in fallback and name != f):
+            while p and name in taken:
                 k += 1
-                name = f"{p or f}_{k}"
-            names.append(name)
+                name = f"{p}_{k}"
+            names[s] = name
+            taken.add(name)
         return tuple(names)
 
     def joint_names(self, edges: np.ndarray, fallback: Sequence[str]) -> tuple[str, ...]:

@@ -317,7 +317,7 @@ class StagePlan:
             return result
         with self.stage(prep, "anatomy"):
             anatomy = identify_result(result)
-        names = result.segment_names if self.segment_names is not None else anatomy.segment_names(result.segment_names)
+        names = result.segment_names if self.segment_names is not None else anatomy.segment_names(result.segment_names, result.edges)
         return dataclasses.replace(
             result, anatomy=anatomy, segment_names=names, timings=dict(prep.timings),
             skeleton=dataclasses.replace(result.skeleton, segment_names=names),

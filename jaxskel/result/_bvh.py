@@ -21,8 +21,9 @@ Mapping (a host-side edge of jaxskel; numpy and scipy only):
   chain's end) to the T-pose direction: abdomen, thorax and head +Y (up); clavicle,
   upper arm, forearm and hand level sideways (left +X, right -X); thigh and shank -Y
   (down); foot and toes forward (+Z, their bone's pitch kept: the heading turned to +Z).
-  The pelvis keeps its fitted orientation (``T = I``), a segment whose part is not
-  identified turns with its parent (``T_s = T_parent``). The bones keep their fitted
+  The pelvis keeps its fitted orientation (``T = I``); a segment whose part is not
+  identified, and the second piece of a part (a one-marker twig on its host's part:
+  :meth:`jaxskel.anatomy.Anatomy.main_segments`), turns with its parent (``T_s = T_parent``). The bones keep their fitted
   lengths. Without an anatomy, or for a body that is not human, ``T_s = I``: the
   skeleton's default pose (every segment frame at its rest orientation, world-aligned in
   the lab frame, :mod:`jaxskel.skeleton._rigid_fit`), turned by ``C``.
@@ -178,12 +179,12 @@ def bvh_rest_orientations(skeleton: Skeleton, anatomy: Anatomy | None, frame: np
         return rest
     parts = anatomy.parts
     origin, centroid = _node_origins(skeleton), _marker_centroids(skeleton)
-    parent = skeleton.parent
+    parent, main = skeleton.parent, anatomy.main_segments(skeleton.edges)
     for s in _tree_order(skeleton):  # parents first: an unnamed segment takes its parent's
         if parent[s] >= 0 and parts[s] != "pelvis":
             rest[s] = rest[parent[s]]
         direction = _T_DIRECTION.get(parts[s])
-        if direction is None:  # the pelvis, the root, an unnamed segment
+        if direction is None or not main[s]:  # the pelvis, the root, an unnamed segment, a part's second piece
             continue
         d = frame @ _bone(skeleton, parts, s, origin, centroid)
         if not np.isfinite(d).all() or np.linalg.norm(d) < 1e-9:
@@ -206,7 +207,7 @@ def _segment_names(
         raise InputError(f"labels must be {n_seg} distinct segment names")
     if anatomy is not None and len(anatomy.parts) != n_seg:
         raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {n_seg}")
-    return ascii_names(part_names(anatomy, base, names))
+    return ascii_names(part_names(anatomy, base, names, skeleton.edges))
 
 
 def export_bvh(

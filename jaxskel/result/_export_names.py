@@ -23,6 +23,8 @@ import unicodedata
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from .._errors import InputError
 
 if TYPE_CHECKING:
@@ -84,6 +86,7 @@ def ascii_names(names: Iterable[str], reserved: Iterable[str] = ()) -> tuple[str
 
 def part_names(
     anatomy: Anatomy | None, labels: Sequence[str], convention: str | Mapping[str, str] | None,
+    edges: np.ndarray | None = None,
 ) -> tuple[str, ...]:
     """The raw (unsanitised) name of every segment.
 
@@ -91,7 +94,9 @@ def part_names(
     ``"jaxskel"`` (the part names), ``"labels"`` (``labels`` as they are), or a mapping
     part -> name. Segments without a part (or without an anatomy, or a body that is not
     human) keep their ``labels``; so does a part a mapping leaves out. ``None`` means
-    ``"mixamo"`` for a humanoid anatomy, else ``"labels"``.
+    ``"mixamo"`` for a humanoid anatomy, else ``"labels"``. Where one part names several
+    segments, the one in the chain of the tree ``edges`` (:meth:`Anatomy.main_segments`)
+    takes the plain name and the others ``<name>_2``.
     """
     humanoid = anatomy is not None and anatomy.humanoid
     if convention is None:
@@ -112,7 +117,9 @@ def part_names(
         raise InputError(f"names must be a convention name or a mapping part -> name, got {type(convention).__name__}")
     if len(anatomy.parts) != len(labels):
         raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {len(labels)}")
-    return tuple(str(table[p]) if p and p in table else lab for p, lab in zip(anatomy.parts, labels))
+    main = anatomy.main_segments(edges)
+    return tuple((str(table[p]) if m else f"{table[p]}_2") if p and p in table else lab
+                 for p, lab, m in zip(anatomy.parts, labels, main))
 
 
 def _mixamo(anatomy: Anatomy) -> dict[str, str]:

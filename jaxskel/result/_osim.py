@@ -327,7 +327,7 @@ def export_osim(
     if anatomy is not None and len(anatomy.parts) != n_seg:
         raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {n_seg}")
     if segment_names is None:
-        names = opensim_names(part_names(anatomy, skeleton.names(), "opensim"), reserved=("ground",))
+        names = opensim_names(part_names(anatomy, skeleton.names(), "opensim", skeleton.edges), reserved=("ground",))
     else:
         names = tuple(_valid_name(v) for v in segment_names)
         if len(names) != n_seg or len(set(names)) != n_seg or "ground" in names:
@@ -335,7 +335,7 @@ def export_osim(
                 f"segment_names must be {n_seg} distinct names other than 'ground' (after making them valid "
                 f"OpenSim names: {', '.join(names)})"
             )
-        names = opensim_names(part_names(anatomy, names, "opensim"), reserved=("ground",))
+        names = opensim_names(part_names(anatomy, names, "opensim", skeleton.edges), reserved=("ground",))
     edges = np.asarray(skeleton.edges, dtype=int)
     root = int(skeleton.root)
     axes = _hinge_axes(skeleton)

@@ -73,3 +73,19 @@ def test_segment_names_stay_distinct_when_a_part_names_two_segments():
     anatomy = Anatomy(parts=("hand_l", "hand_l", ""), confidence=[1, 0.5, 0], humanoid=True, up=[0, 0, 1],
                       front=[1, 0, 0])
     assert anatomy.segment_names(("LHA", "LFIN", "X")) == ("hand_l", "hand_l_2", "X")
+
+
+def test_the_piece_in_the_chain_keeps_the_plain_name_when_a_part_names_two_segments():
+    """A one-marker twig listed before its host, or the short end of a limb cut in two, is
+    ``part_2``; the segment joined to the other parts of the tree is ``part``."""
+    parts = ("thorax", "upper_arm_l", "upper_arm_l", "forearm_l")
+    anatomy = Anatomy(parts=parts, confidence=[1, 0.5, 1, 1], humanoid=True, up=[0, 0, 1], front=[1, 0, 0])
+    edges = np.array([[0, 2], [2, 1], [2, 3]])  # segment 1 hangs off segment 2, which the chain runs through
+    np.testing.assert_array_equal(anatomy.main_segments(edges), [True, False, True, True])
+    assert anatomy.segment_names(("T", "A", "B", "F"), edges) == ("thorax", "upper_arm_l_2", "upper_arm_l",
+                                                                  "forearm_l")
+    assert anatomy.segment_names(("T", "A", "B", "F")) == ("thorax", "upper_arm_l", "upper_arm_l_2", "forearm_l")
+    from jaxskel.result._export_names import part_names
+
+    assert part_names(anatomy, ("T", "A", "B", "F"), "mixamo", edges) == ("Spine", "LeftArm_2", "LeftArm",
+                                                                         "LeftForeArm")
