@@ -142,7 +142,11 @@ class JointAngles:
         Frames per second (``None`` if unknown): :attr:`time` is then the frame index.
     lateral
         Per joint (in joint order), how its flexion axis was set: ``"functional"`` (the
-        hinge's own axis) or ``"body"`` (the body's right, the pelvis's hips).
+        hinge's own axis), ``"body"`` (the body's right, the pelvis's hips) or ``"given"``
+        (frames given to :func:`joint_angles`: a calibration's, for a tracked take).
+    frames
+        (S, 3, 3) the anatomical frames used (:func:`anatomical_frames`; NaN for segments
+        no named joint uses), or ``None``.
     """
 
     names: tuple[str, ...]
@@ -150,6 +154,7 @@ class JointAngles:
     values: np.ndarray
     rate: float | None
     lateral: dict[str, str] = dataclasses.field(default_factory=dict)
+    frames: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -404,7 +409,8 @@ def _cardan_zxy(m: np.ndarray) -> np.ndarray:
     return np.stack([a, b, c], axis=1)
 
 
-def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | None = None) -> JointAngles:
+def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | None = None,
+                 frames: np.ndarray | None = None) -> JointAngles:
     """Flexion, ab/adduction and axial rotation of every joint the anatomy names (module docstring).
 
     Parameters
@@ -415,6 +421,10 @@ def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | 
         The skeleton's body parts (:func:`jaxskel.anatomy.identify`); must be human.
     options
         :class:`AngleOptions` (which joints are hinges).
+    frames
+        (S, 3, 3) anatomical frames to use instead of building them from this motion: a
+        calibration's (:attr:`JointAngles.frames`), so that every take of a subject is
+        measured in the same frames.
 
     Raises
     ------
@@ -431,7 +441,13 @@ def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | 
     if not joints:
         raise InputError("the anatomy names no joint of this skeleton (no two connected segments have named parts)")
     rot = _rotations(motion)
-    frames, source = anatomical_frames(skeleton, motion, anatomy, options)
+    if frames is None:
+        frames, source = anatomical_frames(skeleton, motion, anatomy, options)
+    else:
+        frames = np.asarray(frames, float)
+        if frames.shape != (skeleton.n_segments, 3, 3):
+            raise InputError(f"frames must be (S, 3, 3) = ({skeleton.n_segments}, 3, 3), got {frames.shape}")
+        source = {jt.name: "given" for jt in joints}
     names, owners, columns = [], [], []
     for jt in joints:
         m = np.einsum("ji,fjk,kl->fil", frames[jt.proximal], np.einsum("fji,fjk->fik", rot[:, jt.proximal],
@@ -443,5 +459,5 @@ def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | 
             names.append(f"{jt.name}_{label}")
             owners.append(jt.name)
             columns.append(sign * (mirror if k else 1.0) * abc[:, k])
-    return JointAngles(tuple(names), tuple(owners), np.stack(columns, axis=1), motion.rate, source)
+    return JointAngles(tuple(names), tuple(owners), np.stack(columns, axis=1), motion.rate, source, frames)
 

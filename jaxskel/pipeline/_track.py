@@ -43,7 +43,7 @@ from .._runtime.precision import float64_scope
 from ..clean import clean, lowpass_markers
 from ..io import Trial, check_load_arguments, check_output, refuse_input
 from ..anatomy import Anatomy
-from ..result import TrackedTrial, load_anatomy, load_skeleton, write_angles_sto
+from ..result import TrackedTrial, angles_or_none, load_anatomy, load_angles, load_skeleton, write_angles_sto
 from ..skeleton import Skeleton, inverse_kinematics, measured_rms, segment_members, solver_shape
 from ._batch import BatchResult
 from ._local import Item, TrialOutcome, failed
@@ -249,7 +249,8 @@ def _finish(prep: _Prepared, skeleton: Skeleton, motion: Any, calibration: Calib
         name=prep.item.name, trial=prep.trial, input_labels=prep.input_labels, skeleton=skeleton, motion=motion,
         segment_posed=posed, missing_markers=prep.match.missing + tuple(prep.dropped),
         extra_markers=prep.match.extra, matched=dict(prep.match.matched), cleaning=prep.cleaning,
-        calibration=calibration.path, anatomy=calibration.anatomy, timings={**prep.timings, "ik": ik_seconds},
+        calibration=calibration.path, anatomy=calibration.anatomy, angle_frames=calibration.angle_frames,
+        timings={**prep.timings, "ik": ik_seconds},
         settings=settings,
     )
     caught = list(prep.caught)
@@ -300,24 +301,30 @@ def _solve_group(preps: Sequence[_Prepared], skeleton: Skeleton) -> tuple[list[A
 # ------------------------------------------------------------------ track
 @dataclasses.dataclass(frozen=True)
 class Calibration:
-    """Where a tracked take's skeleton came from: its result file (``""``: given in memory)
-    and the body it named (``None``: none named), which every take inherits."""
+    """Where a tracked take's skeleton came from: its result file (``""``: given in memory),
+    the body it named (``None``: none named) and its anatomical frames (``None``: no joint
+    angles), which every take inherits."""
 
     path: str = ""
     anatomy: Anatomy | None = None
+    angle_frames: np.ndarray | None = None
 
 
 def _skeleton_of(skeleton: Any) -> tuple[Skeleton, Calibration]:
     if isinstance(skeleton, Skeleton):
         return skeleton, Calibration()
     if isinstance(skeleton, (str, os.PathLike)):
-        return load_skeleton(skeleton), Calibration(os.path.abspath(skeleton), load_anatomy(skeleton))
+        angles = load_angles(skeleton)
+        return load_skeleton(skeleton), Calibration(os.path.abspath(skeleton), load_anatomy(skeleton),
+                                                    angles.frames if angles is not None else None)
     from ..result import SkeletonResult
 
     if isinstance(skeleton, SkeletonResult):
         if skeleton.skeleton is None:
             raise InputError("this result has no rigid skeleton (fitted with rigid=False); fit with the defaults")
-        return skeleton.skeleton, Calibration(anatomy=skeleton.anatomy)
+        angles = angles_or_none(skeleton.skeleton, skeleton.motion, skeleton.anatomy)
+        return skeleton.skeleton, Calibration(anatomy=skeleton.anatomy,
+                                              angle_frames=angles.frames if angles is not None else None)
     raise InputError(
         f"track takes a Skeleton, a SkeletonResult or the path of a result file, got {type(skeleton).__name__}"
     )

@@ -16,6 +16,7 @@ from ._virtual import fitted_markers_trial, with_joint_centres
 
 # Used by the other parts of jaxskel (they import a stage through its package, never
 # its private modules); not public API.
+from ._anatomy_file import angles_or_none
 from ._summary import (
     near_tie_text, nonrigid_group_hint, nonrigid_group_texts, nonrigid_text, undetermined_lines,
     untested_text,

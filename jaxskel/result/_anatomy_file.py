@@ -18,7 +18,8 @@ bodies) reads as ``None``.
 * ``values`` (F, C) float, radians, positive in the named direction;
 * ``names`` (C,) str (``knee_l_flexion``) and ``joints`` (C,) str (``knee_l``);
 * ``lateral_joints``, ``lateral`` (J,) str: how each joint's flexion axis was set
-  (``functional`` or ``body``);
+  (``functional``, ``body``, or ``given``: a tracked take measured in its calibration's frames);
+* ``frames`` (S, 3, 3) float: each segment's anatomical frame in its own frame (NaN where unused);
 * attributes ``units`` (``"rad"``), ``convention`` and ``rate`` (Hz, NaN if unknown).
 
 A file without ``/angles`` reads as ``None`` (:func:`read_angles`).
@@ -76,16 +77,18 @@ def load_anatomy(path: str | os.PathLike[str]) -> Anatomy | None:
         return read_anatomy(f)
 
 
-def angles_or_none(skeleton: Any, motion: Any, anatomy: Anatomy | None) -> JointAngles | None:
+def angles_or_none(skeleton: Any, motion: Any, anatomy: Anatomy | None,
+                   frames: np.ndarray | None = None) -> JointAngles | None:
     """The joint angles a result file holds: :func:`jaxskel.anatomy.joint_angles` with its
-    defaults where there is a motion and a human anatomy that names a joint, else ``None``."""
+    defaults (in ``frames`` where given) where there is a motion and a human anatomy that
+    names a joint, else ``None``."""
     from ..anatomy import joint_angles
 
     if skeleton is None or motion is None or anatomy is None or not anatomy.humanoid:
         return None
     if not any(anatomy.joint_names(skeleton.edges, [""] * len(skeleton.edges))):
         return None
-    return joint_angles(skeleton, motion, anatomy)
+    return joint_angles(skeleton, motion, anatomy, frames=frames)
 
 
 def write_angles(group: h5py.Group, angles: JointAngles) -> None:
@@ -95,6 +98,8 @@ def write_angles(group: h5py.Group, angles: JointAngles) -> None:
     put(group, "joints", np.asarray(list(angles.joints), dtype=str))
     put(group, "lateral_joints", np.asarray(list(angles.lateral), dtype=str))
     put(group, "lateral", np.asarray(list(angles.lateral.values()), dtype=str))
+    if angles.frames is not None:
+        put(group, "frames", np.asarray(angles.frames, float))
     group.attrs["units"] = "rad"
     group.attrs["convention"] = CONVENTION
     group.attrs["rate"] = float(angles.rate) if angles.rate else float("nan")
@@ -110,6 +115,7 @@ def read_angles(f: h5py.File) -> JointAngles | None:
         names=_text(g["names"][()]), joints=_text(g["joints"][()]), values=np.asarray(g["values"][()], float),
         rate=rate if np.isfinite(rate) else None,
         lateral=dict(zip(_text(g["lateral_joints"][()]), _text(g["lateral"][()]), strict=True)),
+        frames=np.asarray(g["frames"][()], float) if "frames" in g else None,
     )
 
 

@@ -67,6 +67,9 @@ class TrackedTrial:
     anatomy
         The calibration's named body (:class:`jaxskel.anatomy.Anatomy`), ``None`` where it
         named none (or the skeleton was given without its result).
+    angle_frames
+        (S, 3, 3) the calibration's anatomical frames (``/angles/frames`` of its result), in
+        which :meth:`joint_angles` measures this take; ``None`` where it has none.
     timings, settings
         Seconds per stage; the settings used.
     """
@@ -85,6 +88,7 @@ class TrackedTrial:
     timings: dict[str, float]
     settings: dict[str, Any]
     anatomy: Anatomy | None = None
+    angle_frames: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -137,13 +141,15 @@ class TrackedTrial:
 
     def joint_angles(self, options: Any = None) -> Any:
         """The take's anatomical joint angles (:func:`jaxskel.anatomy.joint_angles`) on the
-        calibration's named body; :class:`InputError` where the calibration named none."""
+        calibration's named body, in the calibration's anatomical frames (:attr:`angle_frames`;
+        where it has none, frames built from this take); :class:`InputError` where the
+        calibration named no body."""
         if self.anatomy is None:
             raise InputError("joint angles need the named body; the calibration's result has no /anatomy "
                              "(refit it with anatomy=True, the default)")
         from ..anatomy import joint_angles
 
-        return joint_angles(self.skeleton, self.motion, self.anatomy, options=options)
+        return joint_angles(self.skeleton, self.motion, self.anatomy, options=options, frames=self.angle_frames)
 
     def export_bvh(self, path: str | os.PathLike[str], *, overwrite: bool = False, units: str = "cm",
                    rotation_order: str = "ZXY", names: str | Mapping[str, str] | None = None) -> Path:
@@ -174,7 +180,7 @@ def save_tracked(tracked: TrackedTrial, path: str | os.PathLike[str], *, overwri
         skeleton.marker_segment[used[source_of.get(lab, lab)]] if source_of.get(lab, lab) in used else -1
         for lab in tracked.input_labels
     ], dtype=np.int64)
-    angles = angles_or_none(skeleton, tracked.motion, tracked.anatomy)
+    angles = angles_or_none(skeleton, tracked.motion, tracked.anatomy, tracked.angle_frames)
     with atomic_output(path, overwrite) as tmp, h5py.File(tmp, "w") as f:
         write_root_attrs(f, trial)
         f.attrs["kind"] = "tracked"

@@ -116,6 +116,9 @@ def test_a_tracked_take_has_its_angles_in_its_file_and_its_storage_file(fitted, 
     table = jaxskel.result.read_sto(tmp_path / "out" / "walk.sto")
     stored = jaxskel.result.load_angles(tmp_path / "out" / "walk.h5")
     np.testing.assert_allclose(table.values, stored.degrees, atol=1e-6)
+    calibration = fitted.joint_angles()
+    np.testing.assert_array_equal(stored.frames, calibration.frames)  # measured in the calibration's frames
+    assert set(stored.lateral.values()) == {"given"} and stored.names == calibration.names
     for true_name, ours in HINGES[:1]:
         true = truth.joint_angles[truth.joint_names.index(true_name)][:, 0]
         assert np.ptp(true) > np.deg2rad(30)  # the walk bends the knee
