@@ -345,8 +345,11 @@ def test_cli_fit_writes_outputs_and_refuses_overwrite(linkage_trial, tmp_path, c
                  "--no-ik"]) == 2
     assert "--no-ik" in capsys.readouterr().err and not (tmp_path / "joints.h5").exists()
     model, trc = tmp_path / "full.osim", tmp_path / "full.trc"
+    sto = tmp_path / "angles.sto"
     assert main(["fit", str(src), "-o", str(tmp_path / "full.h5"), "--bvh", str(bvh), "--osim", str(model), "--trc",
-                 str(trc), "--quiet"]) == 0
+                 str(trc), "--angles", str(sto), "--quiet"]) == 2
+    err = capsys.readouterr().err  # the linkage is not a human body: no angles, every other output written
+    assert f"--angles {sto} was not written" in err and "human" in err and not sto.exists()
     data = jaxskel.result.read_bvh(bvh)
     assert data.n_frames == trial.n_frames and len(data.names) == 3
     assert data.frame_time == pytest.approx(1.0 / trial.rate)

@@ -204,7 +204,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return np.where(n > 1e-12, v / np.where(n > 1e-12, n, 1.0), np.nan)
 
 
-def named_joints(skeleton, anatomy: Anatomy) -> list[_Joint]:
+def _named_joints(skeleton, anatomy: Anatomy) -> list[_Joint]:
     """The tree's joints that the parts name, proximal segment first; of two edges that name
     one joint (a one-marker twig on its host's part), the one whose distal segment has more markers."""
     parts, seg = anatomy.parts, np.asarray(skeleton.marker_segment)
@@ -274,7 +274,8 @@ def _next_in_chain(own: str, child: str) -> bool:
 def _long_axis(skeleton, anatomy: Anatomy, s: int, geo: _Geometry, joints: list[_Joint]) -> np.ndarray:
     """Unit ``Y`` of segment ``s`` (its frame), NaN where its joints cannot set it."""
     part = _base(anatomy.parts[s])
-    prox = _point(skeleton, geo.proximal[s], s) if geo.proximal[s] >= 0 else None
+    # without a named proximal joint: the segment's origin (its joint to its fitted parent)
+    prox = _point(skeleton, geo.proximal[s], s) if geo.proximal[s] >= 0 else np.zeros(3)
     markers = _markers(skeleton, s)
     centroid = markers.mean(axis=0) if len(markers) else np.full(3, np.nan)
     far = _point(skeleton, geo.distal[s], s) if geo.distal[s] >= 0 else None
@@ -377,7 +378,7 @@ def anatomical_frames(skeleton, motion, anatomy: Anatomy, options: AngleOptions 
     docstring; NaN for a segment no named joint uses), and per joint its flexion axis source."""
     options = options or AngleOptions()
     rot = _rotations(motion)
-    joints = named_joints(skeleton, anatomy)
+    joints = _named_joints(skeleton, anatomy)
     geo = _geometry(skeleton, anatomy, joints)
     refs, functional, source = _lateral_refs(skeleton, rot, anatomy, joints, options)
     frames = np.full((skeleton.n_segments, 3, 3), np.nan)
@@ -437,7 +438,7 @@ def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | 
     if not anatomy.humanoid:
         raise InputError("joint angles need a human body; this one was not identified as human "
                          "(anatomy.humanoid is False), so its joints have no anatomical axes")
-    joints = named_joints(skeleton, anatomy)
+    joints = _named_joints(skeleton, anatomy)
     if not joints:
         raise InputError("the anatomy names no joint of this skeleton (no two connected segments have named parts)")
     rot = _rotations(motion)

@@ -219,3 +219,14 @@ def test_joint_angles_record_reads_by_name(body, calibration):
         angles["knee_flexion"]
     with pytest.raises(InputError, match="no joint"):
         angles.of("knee")
+
+
+def test_a_partial_body_has_the_angles_of_the_joints_it_names(body, calibration):
+    """Legs without their pelvis (left unnamed): no hip angles, the knees all the same."""
+    skeleton, motion, truth = calibration
+    parts = [p if p.startswith(("thigh", "shank", "foot")) else "" for p in named(body).parts]
+    legs = Anatomy(parts, np.ones(len(parts)), True, up=[0.0, 0.0, 1.0], front=[1.0, 0.0, 0.0])
+    angles = joint_angles(skeleton, motion, legs)
+    assert set(angles.joints) == {"knee_l", "knee_r", "ankle_l", "ankle_r"}
+    true = truth.joint_angles[truth.joint_names.index("r_knee")][:, 0]
+    np.testing.assert_allclose(angles["knee_r_flexion"], true, atol=1e-8)
