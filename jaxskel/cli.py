@@ -596,8 +596,7 @@ def _track(args: argparse.Namespace) -> int:
     with _dask_cluster(args) as scheduler:
         batch = jaxskel.track(
             args.skeleton, list(args.trials), args.outdir, bvh=args.bvh, trc=args.trc, angles=args.angles,
-            overwrite=args.overwrite,
-            batch_size=args.batch_size, scheduler=scheduler, progress=not args.quiet, units=args.units,
+            overwrite=args.overwrite, batch_size=args.batch_size, scheduler=scheduler, progress=not args.quiet, units=args.units,
             up_axis=args.up_axis, **settings,
         )
     if not args.quiet:
@@ -647,7 +646,8 @@ def _demo(args: argparse.Namespace) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     ns = argparse.Namespace(
         plot=outdir / "summary.png", bvh=outdir / "skeleton.bvh", trc=outdir / "fitted_markers.trc",
-        angles=outdir / "joint_angles.sto", bvh_units="cm", bvh_names=None, trc_joint_centres=False, parameterize=False, overwrite=True, quiet=args.quiet,
+        angles=outdir / "joint_angles.sto", bvh_units="cm", bvh_names=None, trc_joint_centres=False,
+        parameterize=False, overwrite=True, quiet=args.quiet,
     )  # and every setting at its default (options_from_args)
     if not args.quiet:
         print(f"fitting the bundled sample {sample_path().name} (see jaxskel/data/ATTRIBUTION.md)")
