@@ -404,29 +404,7 @@ def test_biobuddy_hip_and_knee_trials_fitted_together_give_the_leg_skeleton():
     assert 0.3 < thigh["L"] < 0.55 and abs(thigh["L"] - thigh["R"]) < 0.02, thigh
 
 
-def test_bundled_sample_tree_is_anatomical_with_default_settings():
-    """The demo's recording (Clouthier's 62-marker cluster set, kneel to prone), default
-    settings: every joint joins adjacent body parts and no marker sits with a body part
-    it is not on. The acromion, hand and ankle markers are one-marker segments; before
-    they were attachments (jaxskel.joints._attachments) the right acromion marker was a hub
-    jointed to the thorax, the head and the right upper arm, and the head hung from it
-    (head-acromion 7.1 against head-thorax 13.0 mm^2: one marker tests one distance)."""
-
-    result = _fit("auto_marker_label/KneeltoProne01.c3d", None)
-    labels, seg = result.trial.labels, result.segmentation.marker_segment
-    assert implausible_edges(labels, seg, result.edges) == []
-    assert misplaced_markers(labels, seg, result.segmentation.distance_std, result.segmentation.rigid_limit) == []
-    parts = segment_parts(labels, seg)
-    edges = {frozenset((parts[a], parts[b])) for a, b in result.edges.tolist()}
-    assert {frozenset(("thorax", "head")), frozenset(("thorax", "pelvis"))} <= edges
-    hosts = {result.trial.labels[int(np.flatnonzero(seg == a.segment)[0])]: parts[a.host]
-             for a in result.topology.attachments}
-    assert hosts["RHAND"] == "R forearm" and hosts["LHAND"] == "L forearm"
-    for a in result.topology.attachments:  # every one-marker segment is a leaf
-        assert sum(a.segment in e for e in result.edges.tolist()) == 1
-
-
-@pytest.mark.extended  # about 2 min on 2 cores; the bundled sample's tree runs by default
+@pytest.mark.extended  # about 2 min on 2 cores; the bundled sample's tree runs by default (tests/anatomy/test_identify.py)
 def test_cmu_01_01_tree_is_anatomical_with_default_settings():
     """CMU subject 01 (the 41-marker set, forward jumps), default settings. The left upper
     arm carries two markers (LUPA, LELB) and has no pose of its own, so the fixed-centre
