@@ -42,18 +42,20 @@ def test_the_knees_and_elbows_of_a_human_are_found(seed):
     assert np.all(np.array(body.joint_types)[limb_hinges(norm)] == "hinge")
 
 
-def test_random_trees_flag_only_mirrored_pairs():
+#: Trees of 6 to 9 segments by default, the larger ones (about 5 s each on 2 cores) with ``-m extended``.
+@pytest.mark.parametrize("seed", [pytest.param(seed, marks=[pytest.mark.extended] if seed >= 4 else [])
+                                  for seed in range(12)])
+def test_random_trees_flag_only_mirrored_pairs(seed):
     """Whatever a random tree flags comes in pairs hanging from one segment whose spans agree."""
-    for seed in range(12):
-        body = synth.random_tree(6 + seed, seed=seed)
-        norm, _ = _normalized(body, seed=seed, duration=1.5)
-        hinge = limb_hinges(norm)
-        bone_in, bone_out, hangs = limb_candidates(norm)
-        span = bone_in + bone_out
-        for j in np.flatnonzero(hinge):
-            mates = [k for k in np.flatnonzero(hinge) if k != j and hangs[k] == hangs[j]
-                     and abs(span[k] - span[j]) <= BONE_MATCH * max(span[k], span[j])]
-            assert mates, (seed, j)
+    body = synth.random_tree(6 + seed, seed=seed)
+    norm, _ = _normalized(body, seed=seed, duration=1.5)
+    hinge = limb_hinges(norm)
+    bone_in, bone_out, hangs = limb_candidates(norm)
+    span = bone_in + bone_out
+    for j in np.flatnonzero(hinge):
+        mates = [k for k in np.flatnonzero(hinge) if k != j and hangs[k] == hangs[j]
+                 and abs(span[k] - span[j]) <= BONE_MATCH * max(span[k], span[j])]
+        assert mates, (seed, j)
 
 
 # ------------------------------------------------------------------ a hand-built human
