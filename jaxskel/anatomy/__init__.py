@@ -6,7 +6,7 @@ and the motion.
 from __future__ import annotations
 
 from ._vocabulary import (
-    JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, is_ancestor, joint_between, joint_name, mirror,
+    CHAINS, JOINT_OF_PART, PARENT_PART, PARTS, SIDES, VIRTUAL_MARKER, Anatomy, is_ancestor, joint_between, joint_name, mirror,
     side_of,
 )
 from ._identify import identify, identify_result
@@ -16,6 +16,6 @@ from ._angles import COMPONENTS, AngleOptions, JointAngles, anatomical_frames, j
 __all__ = [
     "AnatomyOptions", "identify", "identify_result",
     "AngleOptions", "COMPONENTS", "JointAngles", "anatomical_frames", "joint_angles",
-    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
+    "Anatomy", "CHAINS", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
     "joint_name", "mirror", "side_of",
 ]

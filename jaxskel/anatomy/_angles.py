@@ -65,12 +65,13 @@ This is host-side numpy, vectorised over frames (the only loop is over the joint
 from __future__ import annotations
 
 import dataclasses
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import InputError
 from .._math.rotation import quat_to_matrix_np
-from ._vocabulary import Anatomy, is_ancestor, joint_between, side_of
+from ._vocabulary import CHAINS, Anatomy, is_ancestor, joint_between, side_of
 
 __all__ = ["COMPONENTS", "AngleOptions", "JointAngles", "anatomical_frames", "joint_angles"]
 
@@ -196,7 +197,7 @@ class _Joint:
 
     @property
     def kind(self) -> str:
-        return self.name[:-2] if side_of(self.name) else self.name
+        return _base(self.name)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -239,36 +240,31 @@ class _Geometry:
     distal: np.ndarray
 
 
+_CHAIN_OF = {part: chain for chain in CHAINS for part in chain}
+
+
+def _down_chain(own: str, child: str) -> int:
+    """How many places ``child`` lies below ``own`` in their chain (thigh -> shank: 1), 0
+    where it does not continue ``own``'s chain (thorax -> upper arm)."""
+    chain = _CHAIN_OF.get(own, ())
+    return max(chain.index(child) - chain.index(own), 0) if child in chain else 0
+
+
 def _geometry(skeleton, anatomy: Anatomy, joints: list[_Joint]) -> _Geometry:
     """Each segment's joint to its anatomical parent, and to the nearest part down its chain."""
     n = skeleton.n_segments
-    proximal, distal = np.full(n, -1), np.full(n, -1)
+    proximal, distal, nearest = np.full(n, -1), np.full(n, -1), np.zeros(n, int)
     for jt in joints:
         proximal[jt.distal] = jt.edge
-    for jt in sorted(joints, key=lambda jt: -_rank(anatomy.parts[jt.distal])):  # nearest child last
-        if _next_in_chain(anatomy.parts[jt.proximal], anatomy.parts[jt.distal]):
-            distal[jt.proximal] = jt.edge
+        step = _down_chain(anatomy.parts[jt.proximal], anatomy.parts[jt.distal])
+        if step and (not nearest[jt.proximal] or step < nearest[jt.proximal]):
+            distal[jt.proximal], nearest[jt.proximal] = jt.edge, step
     return _Geometry(proximal, distal)
 
 
-_CHAIN_ORDER = ("pelvis", "abdomen", "thorax", "head", "clavicle", "upper_arm", "forearm", "hand",
-                "thigh", "shank", "foot", "toes")
-
-
 def _base(part: str) -> str:
+    """A part or joint without its side (``thigh`` for ``thigh_l``)."""
     return part[:-2] if side_of(part) else part
-
-
-def _rank(part: str) -> int:
-    return _CHAIN_ORDER.index(_base(part))
-
-
-def _next_in_chain(own: str, child: str) -> bool:
-    """Whether ``child`` continues ``own``'s chain (thigh -> shank, thorax -> head; not thorax -> arm)."""
-    chains = (("pelvis", "abdomen", "thorax", "head"), ("clavicle", "upper_arm", "forearm", "hand"),
-              ("thigh", "shank", "foot", "toes"))
-    a, b = _base(own), _base(child)
-    return any(a in c and b in c and c.index(a) < c.index(b) for c in chains)
 
 
 def _long_axis(skeleton, anatomy: Anatomy, s: int, geo: _Geometry, joints: list[_Joint]) -> np.ndarray:
@@ -288,6 +284,8 @@ def _long_axis(skeleton, anatomy: Anatomy, s: int, geo: _Geometry, joints: list[
         return _unit((far if far is not None else centroid) - prox)
     if part == "pelvis":
         return anatomy.up.copy()
+    if part == "clavicle" and far is not None:  # the bone, sternoclavicular joint to shoulder (_frame: Z)
+        return _unit(far - prox)
     return np.full(3, np.nan)
 
 
@@ -372,26 +370,41 @@ def _frame(part: str, y: np.ndarray, lateral: np.ndarray, functional: bool, forw
     return np.stack([x, y, z], axis=1)
 
 
-def anatomical_frames(skeleton, motion, anatomy: Anatomy, options: AngleOptions | None = None
-                      ) -> tuple[np.ndarray, dict[str, str]]:
-    """(S, 3, 3) each segment's anatomical frame ``A_s = [X Y Z]`` in its own frame (module
-    docstring; NaN for a segment no named joint uses), and per joint its flexion axis source."""
-    options = options or AngleOptions()
-    rot = _rotations(motion)
-    joints = _named_joints(skeleton, anatomy)
+def _frames(skeleton, rot: np.ndarray, anatomy: Anatomy, joints: list[_Joint], options: AngleOptions
+            ) -> tuple[np.ndarray, dict[str, str]]:
+    """:func:`anatomical_frames` from the motion's rotations (F, S, 3, 3) and the named joints."""
     geo = _geometry(skeleton, anatomy, joints)
     refs, functional, source = _lateral_refs(skeleton, rot, anatomy, joints, options)
     frames = np.full((skeleton.n_segments, 3, 3), np.nan)
-    used = {s for jt in joints for s in (jt.proximal, jt.distal)}
     right = -anatomy.left
-    for s in sorted(used):
+    for s in sorted({s for jt in joints for s in (jt.proximal, jt.distal)}):
         part = anatomy.parts[s]
         y = _long_axis(skeleton, anatomy, s, geo, joints)
-        if _base(part) == "clavicle" and geo.distal[s] >= 0 and geo.proximal[s] >= 0:
-            y = _unit(_point(skeleton, geo.distal[s], s) - _point(skeleton, geo.proximal[s], s))
         forward = _forward_axis(skeleton, s, geo) if _base(part) in ("foot", "toes") else None
         frames[s] = _frame(part, y, refs.get(s, right), s in functional, forward, anatomy.up)
     return frames, source
+
+
+def anatomical_frames(skeleton, motion, anatomy: Anatomy, options: AngleOptions | None = None
+                      ) -> tuple[np.ndarray, dict[str, str]]:
+    """(S, 3, 3) each segment's anatomical frame ``A_s = [X Y Z]`` in its own frame (module
+    docstring; NaN for a segment no named joint uses), and per joint its flexion axis source.
+    Raises :class:`InputError` as :func:`joint_angles` does."""
+    joints = _checked_joints(skeleton, anatomy)
+    return _frames(skeleton, _rotations(motion), anatomy, joints, options or AngleOptions())
+
+
+def _checked_joints(skeleton, anatomy: Anatomy) -> list[_Joint]:
+    """The named joints of a human ``anatomy`` that matches ``skeleton`` (else :class:`InputError`)."""
+    if len(anatomy.parts) != skeleton.n_segments:
+        raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {skeleton.n_segments}")
+    if not anatomy.humanoid:
+        raise InputError("joint angles need a human body; this one was not identified as human "
+                         "(anatomy.humanoid is False), so its joints have no anatomical axes")
+    joints = _named_joints(skeleton, anatomy)
+    if not joints:
+        raise InputError("the anatomy names no joint of this skeleton (no two connected segments have named parts)")
+    return joints
 
 
 def _rotations(motion) -> np.ndarray:
@@ -433,17 +446,10 @@ def joint_angles(skeleton, motion, anatomy: Anatomy, *, options: AngleOptions | 
         When the anatomy is not human, names no joint, or does not match the skeleton.
     """
     options = options or AngleOptions()
-    if len(anatomy.parts) != skeleton.n_segments:
-        raise InputError(f"the anatomy names {len(anatomy.parts)} segments, the skeleton has {skeleton.n_segments}")
-    if not anatomy.humanoid:
-        raise InputError("joint angles need a human body; this one was not identified as human "
-                         "(anatomy.humanoid is False), so its joints have no anatomical axes")
-    joints = _named_joints(skeleton, anatomy)
-    if not joints:
-        raise InputError("the anatomy names no joint of this skeleton (no two connected segments have named parts)")
+    joints = _checked_joints(skeleton, anatomy)
     rot = _rotations(motion)
     if frames is None:
-        frames, source = anatomical_frames(skeleton, motion, anatomy, options)
+        frames, source = _frames(skeleton, rot, anatomy, joints, options)
     else:
         frames = np.asarray(frames, float)
         if frames.shape != (skeleton.n_segments, 3, 3):

@@ -28,7 +28,7 @@ import numpy as np
 from .._errors import InputError
 
 __all__ = [
-    "Anatomy", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
+    "Anatomy", "CHAINS", "JOINT_OF_PART", "PARENT_PART", "PARTS", "SIDES", "VIRTUAL_MARKER", "is_ancestor", "joint_between",
     "joint_name", "mirror", "side_of",
 ]
 
@@ -50,6 +50,13 @@ for _s in SIDES:
         f"hand_{_s}": f"forearm_{_s}", f"thigh_{_s}": "pelvis", f"shank_{_s}": f"thigh_{_s}",
         f"foot_{_s}": f"shank_{_s}", f"toes_{_s}": f"foot_{_s}",
     })
+
+#: The chains of the human tree, proximal to distal: the trunk, each arm, each leg.
+CHAINS: tuple[tuple[str, ...], ...] = (
+    ("pelvis", "abdomen", "thorax", "head"),
+    *((f"clavicle_{s}", f"upper_arm_{s}", f"forearm_{s}", f"hand_{s}") for s in SIDES),
+    *((f"thigh_{s}", f"shank_{s}", f"foot_{s}", f"toes_{s}") for s in SIDES),
+)
 
 #: The joint at the proximal end of each part (named after the child part it moves).
 JOINT_OF_PART: dict[str, str] = {"abdomen": "lumbar", "thorax": "thoracic", "head": "neck"}

@@ -59,6 +59,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._errors import InputError
+from ..anatomy import CHAINS
 from ..io import atomic_output, check_output, rotation_between_axes
 from ._export_names import ascii_names, part_names
 
@@ -72,13 +73,7 @@ _UNITS = {"m": 1.0, "cm": 100.0}
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 _UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
-#: The chains of the human tree, proximal to distal (``_s``: each side).
-_CHAINS: tuple[tuple[str, ...], ...] = (
-    ("pelvis", "abdomen", "thorax", "head"),
-    *((f"clavicle_{s}", f"upper_arm_{s}", f"forearm_{s}", f"hand_{s}") for s in "lr"),
-    *((f"thigh_{s}", f"shank_{s}", f"foot_{s}", f"toes_{s}") for s in "lr"),
-)
-_CHAIN_OF = {part: chain for chain in _CHAINS for part in chain}
+_CHAIN_OF = {part: chain for chain in CHAINS for part in chain}
 #: T-pose direction of each part's bone in BVH axes ("forward": +Z, pitch kept).
 _T_DIRECTION: dict[str, tuple[float, float, float] | str] = {"abdomen": (0, 1, 0), "thorax": (0, 1, 0),
                                                             "head": (0, 1, 0)}
