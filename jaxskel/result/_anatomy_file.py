@@ -34,7 +34,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..anatomy import Anatomy, JointAngles
+from ..anatomy import Anatomy, JointAngles, joint_angles
 from ..io import put
 
 __all__ = ["angles_or_none", "load_anatomy", "load_angles", "read_anatomy", "read_angles", "write_anatomy", "write_angles"]
@@ -82,8 +82,6 @@ def angles_or_none(skeleton: Any, motion: Any, anatomy: Anatomy | None,
     """The joint angles a result file holds: :func:`jaxskel.anatomy.joint_angles` with its
     defaults (in ``frames`` where given) where there is a motion and a human anatomy that
     names a joint, else ``None``."""
-    from ..anatomy import joint_angles
-
     if skeleton is None or motion is None or anatomy is None or not anatomy.humanoid:
         return None
     if not any(anatomy.joint_names(skeleton.edges, [""] * len(skeleton.edges))):

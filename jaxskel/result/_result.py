@@ -11,7 +11,7 @@ import numpy as np
 
 from .._errors import InputError
 from .._math.frames import cut_frames
-from ..anatomy import Anatomy
+from ..anatomy import Anatomy, AngleOptions, JointAngles, joint_angles
 from ..clean import CleaningReport
 from ..io import Trial
 from ..joints import Topology
@@ -224,7 +224,7 @@ class SkeletonResult:
 
         save_result(self, path, overwrite=overwrite, extra_groups=extra_groups)
 
-    def joint_angles(self, options: Any = None) -> Any:
+    def joint_angles(self, options: AngleOptions | None = None) -> JointAngles:
         """The anatomical joint angles of the motion (:func:`jaxskel.anatomy.joint_angles`:
         Grood–Suntay frames, ISB signs, radians), every frame of the fitted recording.
 
@@ -235,8 +235,6 @@ class SkeletonResult:
                              "(the defaults)")
         if self.anatomy is None:
             raise InputError("joint angles need the named body; fit with anatomy=True (the default; not --no-anatomy)")
-        from ..anatomy import joint_angles
-
         return joint_angles(self.skeleton, self.motion, self.anatomy, options=options)
 
     def export_bvh(

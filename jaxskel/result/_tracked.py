@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 
 from .._errors import InputError
-from ..anatomy import Anatomy
+from ..anatomy import Anatomy, AngleOptions, JointAngles, joint_angles
 from ..clean import CleaningReport
 from ..io import Trial, atomic_output, check_output, input_sources, put, refuse_input
 
@@ -139,7 +139,7 @@ class TrackedTrial:
         """Write the tracked trial's result file (module docstring), atomically."""
         return save_tracked(self, path, overwrite=overwrite)
 
-    def joint_angles(self, options: Any = None) -> Any:
+    def joint_angles(self, options: AngleOptions | None = None) -> JointAngles:
         """The take's anatomical joint angles (:func:`jaxskel.anatomy.joint_angles`) on the
         calibration's named body, in the calibration's anatomical frames (:attr:`angle_frames`;
         where it has none, frames built from this take); :class:`InputError` where the
@@ -147,8 +147,6 @@ class TrackedTrial:
         if self.anatomy is None:
             raise InputError("joint angles need the named body; the calibration's result has no /anatomy "
                              "(refit it with anatomy=True, the default)")
-        from ..anatomy import joint_angles
-
         return joint_angles(self.skeleton, self.motion, self.anatomy, options=options, frames=self.angle_frames)
 
     def export_bvh(self, path: str | os.PathLike[str], *, overwrite: bool = False, units: str = "cm",
