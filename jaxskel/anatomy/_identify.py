@@ -11,8 +11,14 @@ No marker name is read. The method (issue 72):
 2. **Pairs.** A limb's *hinge* (knee, elbow) is a joint between two consecutive
    segments whose shorter one is at least half the longest such (thigh and shank, upper
    arm and forearm; a long clavicle or a head segment before an upper arm a rival), its
-   *span* the sum of those two. Two limbs of one hub whose spans, for the hinges that
-   agree best, agree to ``limb_match`` and that choose each other are a mirror pair. Of
+   *span* the sum of those two. The two limbs' hinges are chosen among these so that the
+   spans agree and the hinges straighten: least ``mismatch + (bend_a + bend_b) / 2``, with
+   ``mismatch`` the spans' difference over the larger and a joint's *bend* ``1 - a / pi``,
+   ``a`` the straightest angle it reaches between its two segments (95th percentile over the
+   frames). A knee or an elbow straightens; an ankle never does, so a foot as long as half
+   the shank does not take the knee's place when its spans happen to agree better. Two
+   limbs of one hub whose spans agree to ``limb_match`` and that choose each other are a
+   mirror pair. Of
    two pairs the longer is the legs, its hub the pelvis (a tree without hubs, a chain,
    is split at the segment that leaves the best-matched pair: a pelvis with two legs
    and no trunk); the other's hub is the thorax. A lone pair is legs when its span is at
@@ -78,6 +84,7 @@ class _Branch:
     joints: tuple[int, ...]
     end_hub: int
     lengths: np.ndarray  # (len(segments),) metres
+    bends: np.ndarray  # (len(segments),) the bend at each segment's entry joint (0 at the hub), in half turns
 
 
 @dataclasses.dataclass(frozen=True)
@@ -225,7 +232,22 @@ def _name_twigs(naming, twigs: dict[int, int], nbrs_all, rest: _Poses, marker_se
             naming.name(leaf, naming.parts[host], 0.5 * naming.confidence[host])
 
 
-def _branches(skeleton, rest: _Poses, nbrs, hub: int) -> list[_Branch]:
+def _bends(segments, joints, poses: _Poses, marker_segment: np.ndarray) -> np.ndarray:
+    """Per segment of a branch, ``1 - a / pi`` with ``a`` the straightest angle over the
+    frames (the 95th percentile) between the previous segment and this one at the joint
+    entering it (``segments[0]``: 0); a leaf's far end is its markers' mean."""
+    out = np.zeros(len(segments))
+    for i in range(1, len(segments)):
+        at = poses.joints[:, joints[i]]
+        far = poses.joints[:, joints[i + 1]] if i + 1 < len(joints) else _point(poses, segments[i], marker_segment)
+        u, c = _unit(poses.joints[:, joints[i - 1]] - at), _unit(far - at)
+        angle = np.arccos(np.clip(np.sum(u * c, -1), -1.0, 1.0))
+        angle = angle[np.isfinite(angle) & (np.linalg.norm(c, axis=-1) > 0)]
+        out[i] = 1.0 - np.percentile(angle, 95) / np.pi if angle.size else 1.0
+    return out
+
+
+def _branches(skeleton, rest: _Poses, nbrs, hub: int, poses: _Poses) -> list[_Branch]:
     """Every branch of ``hub`` (module docstring, 1)."""
     seg = np.asarray(skeleton.marker_segment, int)
     out = []
@@ -251,19 +273,21 @@ def _branches(skeleton, rest: _Poses, nbrs, hub: int) -> list[_Branch]:
             else:
                 m = rest.markers[0, seg == s]
                 lengths.append(float(np.linalg.norm(m - entry, axis=1).max()) if len(m) else 0.0)
-        out.append(_Branch(hub, tuple(segments), tuple(joints), end_hub, np.asarray(lengths)))
+        bends = _bends(segments, joints, poses, seg)
+        out.append(_Branch(hub, tuple(segments), tuple(joints), end_hub, np.asarray(lengths), bends))
     return out
 
 
-def _hinge_options(branch: _Branch) -> list[tuple[int, float]]:
-    """A leaf branch's possible hinges (index of the segment after it) and spans: the
+def _hinge_options(branch: _Branch) -> list[tuple[int, float, float]]:
+    """A leaf branch's possible hinges (index of the segment after it), spans and bends: the
     joints between two consecutive segments whose shorter is at least half the best such
-    (the knee or elbow, and a near rival: a clavicle or head segment before the upper arm)."""
+    (the knee or elbow, and a near rival: an ankle, a clavicle or head segment before the
+    upper arm)."""
     if branch.end_hub >= 0 or len(branch.segments) < 2:
         return []
     pair_len = np.minimum(branch.lengths[:-1], branch.lengths[1:])
     ks = np.flatnonzero(pair_len >= 0.5 * pair_len.max()) + 1
-    return [(int(k), float(branch.lengths[k - 1] + branch.lengths[k])) for k in ks]
+    return [(int(k), float(branch.lengths[k - 1] + branch.lengths[k]), float(branch.bends[k])) for k in ks]
 
 
 def _limb(branch: _Branch) -> _Limb | None:
@@ -281,13 +305,16 @@ def _limbs(branches: list[_Branch]) -> list[_Limb]:
 
 
 def _match(a: _Limb, b: _Limb) -> tuple[float, _Limb, _Limb]:
-    """The two limbs' hinges chosen among their options so that their spans agree best."""
-    best = (np.inf, a, b)
-    for ka, sa in _hinge_options(a.branch):
-        for kb, sb in _hinge_options(b.branch):
+    """The two limbs' hinges chosen among their options so that their spans agree best and
+    the hinges straighten (module docstring, 2): least ``mismatch + (bend_a + bend_b) / 2``.
+    Returns the mismatch of the spans at the hinges chosen."""
+    best, cost = (np.inf, a, b), np.inf
+    for ka, sa, ba in _hinge_options(a.branch):
+        for kb, sb, bb in _hinge_options(b.branch):
             m = abs(sa - sb) / max(sa, sb, 1e-12)
-            if m < best[0] - 1e-9 or (m < best[0] + 1e-9 and (ka, kb) == (a.hinge, b.hinge)):
-                best = (m, _Limb(a.branch, ka, sa), _Limb(b.branch, kb, sb))
+            c = m + 0.5 * (ba + bb)
+            if c < cost - 1e-9 or (c < cost + 1e-9 and (ka, kb) == (a.hinge, b.hinge)):
+                best, cost = (m, _Limb(a.branch, ka, sa), _Limb(b.branch, kb, sb)), c
     return best
 
 
@@ -488,12 +515,12 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     twigs = _twigs(_neighbours(edges, n), rest, marker_segment, opts)
     nbrs = _neighbours(edges[[j not in twigs.values() for j in range(len(edges))]] if twigs else edges, n, edges)
     hubs = [s for s in range(n) if len(nbrs[s]) >= 3]
-    branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
+    branches = {h: _branches(skeleton, rest, nbrs, h, poses) for h in hubs}
     pairs = [p for h in hubs for p in _pairs(_limbs(branches[h]), opts.limb_match)]
     if not pairs:  # a partial body: two legs on a pelvis with no trunk, a chain
-        pairs = _chain_pair(skeleton, rest, nbrs, opts)
+        pairs = _chain_pair(skeleton, rest, nbrs, poses, opts)
         hubs = [p.a.branch.hub for p in pairs]
-        branches = {h: _branches(skeleton, rest, nbrs, h) for h in hubs}
+        branches = {h: _branches(skeleton, rest, nbrs, h, poses) for h in hubs}
     if not pairs:
         return _not_human(n, lab_up, "No hub of the tree carries two limbs of matching length: not a human body.")
     pairs.sort(key=lambda p: -(p.a.span + p.b.span))
@@ -535,13 +562,13 @@ def identify(skeleton, motion=None, *, up_axis: str = "auto", options: AnatomyOp
     return Anatomy(tuple(naming.parts), naming.confidence, True, up, front, tuple(naming.notes))
 
 
-def _chain_pair(skeleton, rest: _Poses, nbrs, opts: AnatomyOptions) -> list[_Pair]:
+def _chain_pair(skeleton, rest: _Poses, nbrs, poses: _Poses, opts: AnatomyOptions) -> list[_Pair]:
     """A tree without a hub, a chain: the segment that splits it into the best-matched
     pair of limbs (a pelvis between two legs), as a one-pair list (empty: none)."""
     best: list[_Pair] = []
     for s in range(len(nbrs)):
         if len(nbrs[s]) == 2:
-            pairs = _pairs(_limbs(_branches(skeleton, rest, nbrs, s)), opts.limb_match)
+            pairs = _pairs(_limbs(_branches(skeleton, rest, nbrs, s, poses)), opts.limb_match)
             if pairs and (not best or pairs[0].mismatch < best[0].mismatch):
                 best = pairs
     return best
