@@ -60,7 +60,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._math.padding import bucket_size
-from .._math.procrustes import align_to_reference, procrustes
+from .._math.procrustes import align_to_reference, closed_form_align, procrustes
 from .._runtime import program_cache as _program_cache
 from .._runtime.backend import uses_cpu
 from .._runtime.precision import float64_scope
@@ -70,10 +70,15 @@ __all__ = ["AnchoredCentres", "anchored_centres"]
 #: One alignment pass of every frame to a fixed reference, compiled once per shape.
 _align = jax.jit(align_to_reference)
 
-#: At most this many frames enter the generalised Procrustes of the segment poses and
-#: each joint's fit (the pose check, :mod:`jaxskel.joints._pose_check`, poses with the same
-#: shapes, so both share one compiled alignment).
+#: Rows of (frame, segment) clouds, each aligned to its own segment's reference.
+_align_rows = jax.jit(jax.vmap(closed_form_align))
+
+#: At most this many frames enter the generalised Procrustes of the segment poses (the
+#: pose check's, :mod:`jaxskel.joints._pose_check`, too) and each joint's fit.
 MAX_FRAMES = 2000
+
+#: The anchored refit poses the (segment, frame) rows its fits read in blocks of this many.
+POSE_ROWS = 8192
 
 #: A move along a Hessian eigenvector is kept where it is at least this many
 #: resolutions long (module docstring).
@@ -141,56 +146,146 @@ class AnchoredCentres:
     radial_cosines: Float[np.ndarray, "J 3"]
 
 
-def _segment_poses(
-    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int, max_frames: int, frames: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Marker-only poses of every segment in every frame (or only in ``frames``).
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Clouds:
+    """Each segment's mean marker cloud, what poses a frame against it.
 
-    The mean cloud of each segment comes from the rigid stage's generalised Procrustes
-    (passes until the mean cloud settles, at most eight) on at most ``max_frames`` evenly
-    spaced frames; every frame is then aligned to it once, in one pass (timing:
-    docs/bench/evidence_from_docstrings.md). Frames are padded to bucket sizes so trials
-    share compiles.
+    ``index`` (S, P): the markers of each segment (-1: padding); ``ref`` (S, P, 3) the
+    mean clouds of the generalised Procrustes, ``ref_weight`` (S, P) 1 where a point of
+    it exists; ``framed`` (S,): the segment has a frame at all (three or more markers,
+    three frames that see them all, a cloud that is not (nearly) collinear)."""
 
-    Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
-    onto their mean cloud, and ``posed`` (F, S): the frame sees three of the segment's
-    markers and the segment has a frame at all (three or more markers, three frames that
-    see them all, a cloud that is not (nearly) collinear). With ``frames`` (indices), F is
-    ``len(frames)``: the mean clouds and which segments have a frame are still the whole
-    recording's, and each frame's alignment is its own, so these rows are the whole
-    recording's rows ``frames``.
-    """
+    index: Int[np.ndarray, "S P"]
+    ref: Float[np.ndarray, "S P 3"]
+    ref_weight: Float[np.ndarray, "S P"]
+    framed: Bool[np.ndarray, " S"]
+
+
+def _gather(
+    x: np.ndarray, mask: np.ndarray, index: np.ndarray, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The clouds ``(Fb, S, P, 3)`` and their weights ``(Fb, S, P)`` of ``frames``, padded
+    to a bucket of frames (weight 0) so that recordings share compiles."""
+    padded = np.concatenate([frames, np.zeros(bucket_size(frames.size) - frames.size, int)])
+    real = np.arange(padded.size) < frames.size
+    seen = mask[padded][:, np.maximum(index, 0)] & (index >= 0)[None] & real[:, None, None]
+    return np.where(seen[..., None], x[padded][:, np.maximum(index, 0)], 0.0), seen.astype(float)
+
+
+def _mean_clouds(x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int, max_frames: int) -> _Clouds:
+    """The rigid stage's generalised Procrustes (passes until the mean cloud settles, at
+    most eight) on at most ``max_frames`` evenly spaced frames."""
     n_frames = x.shape[0]
     members = [np.flatnonzero(seg == s) for s in range(n_seg)]
-    pidx = np.full((n_seg, max(max((m.size for m in members), default=1), 1)), -1)
+    index = np.full((n_seg, max(max((m.size for m in members), default=1), 1)), -1)
     for s, m in enumerate(members):
-        pidx[s, : m.size] = m
-
-    def clouds(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        padded = np.concatenate([frames, np.zeros(bucket_size(frames.size) - frames.size, int)])
-        real = np.arange(padded.size) < frames.size
-        seen = mask[padded][:, np.maximum(pidx, 0)] & (pidx >= 0)[None] & real[:, None, None]  # (Fb, S, P)
-        return np.where(seen[..., None], x[padded][:, np.maximum(pidx, 0)], 0.0), seen.astype(float)
-
-    sub_pts, sub_w = clouds(np.unique(np.linspace(0, n_frames - 1, min(max_frames, n_frames)).astype(int)))
+        index[s, : m.size] = m
+    sub_frames = np.unique(np.linspace(0, n_frames - 1, min(max_frames, n_frames)).astype(int))
+    sub_pts, sub_w = _gather(x, mask, index, sub_frames)
     first = np.argmax(sub_w.sum(axis=-1), axis=0)  # per segment: best-covered frame
     ref = np.asarray(
         _program_cache.call(
             procrustes, sub_pts, sub_w, sub_pts[first, np.arange(n_seg)], sub_w[first, np.arange(n_seg)]
         )[0]
     )
-    posed_frames = np.arange(n_frames) if frames is None else np.asarray(frames, dtype=int)
-    pts, weights = clouds(posed_frames)
-    framed_ref = (sub_w.sum(axis=0) > 0).astype(float)
-    rot, t = (np.asarray(a) for a in _program_cache.call(_align, pts, weights, ref, framed_ref))
     framed = np.zeros(n_seg, bool)
     for s, m in enumerate(members):
         if m.size >= 3 and mask[:, m].all(axis=1).sum() >= 3:
             sv = np.linalg.svd(ref[s, : m.size] - ref[s, : m.size].mean(axis=0), compute_uv=False)
             framed[s] = sv[1] > 1e-3 * max(sv[0], 1e-12)
-    n_posed = posed_frames.size
-    posed = (weights.sum(axis=-1) >= 3)[:n_posed] & framed[None]
-    return rot[:n_posed], t[:n_posed], posed
+    return _Clouds(index=index, ref=ref, ref_weight=(sub_w.sum(axis=0) > 0).astype(float), framed=framed)
+
+
+def _posed(clouds: _Clouds, mask: np.ndarray) -> Bool[np.ndarray, "F S"]:
+    """(F, S): the frame sees three of the segment's markers and the segment has a frame."""
+    seen = mask[:, np.maximum(clouds.index, 0)] & (clouds.index >= 0)[None]
+    return (seen.sum(axis=-1) >= 3) & clouds.framed[None]
+
+
+def _pose_frames(
+    clouds: _Clouds, x: np.ndarray, mask: np.ndarray, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` (F, S, 3, 3) and ``t`` (F, S, 3) of ``frames`` (F indices), ``R x + t``
+    mapping a frame's markers onto the mean clouds: every frame aligned on its own, in
+    one pass."""
+    pts, weights = _gather(x, mask, clouds.index, np.asarray(frames, dtype=int))
+    rot, t = (np.asarray(a) for a in _program_cache.call(_align, pts, weights, clouds.ref, clouds.ref_weight))
+    return rot[: len(frames)], t[: len(frames)]
+
+
+def _segment_poses(
+    x: np.ndarray, mask: np.ndarray, seg: np.ndarray, n_seg: int, max_frames: int, frames: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marker-only poses of every segment in every frame (or only in ``frames``).
+
+    The mean cloud of each segment comes from :func:`_mean_clouds`; every frame is then
+    aligned to it once, in one pass (timing: docs/bench/evidence_from_docstrings.md).
+    Frames are padded to bucket sizes so trials share compiles.
+
+    Returns ``R`` (F, S, 3, 3) and ``t`` (F, S, 3), ``R x + t`` mapping a frame's markers
+    onto their mean cloud, and ``posed`` (F, S) (:func:`_posed`). With ``frames``
+    (indices), F is ``len(frames)``: the mean clouds and which segments have a frame are
+    still the whole recording's, and each frame's alignment is its own, so these rows are
+    the whole recording's rows ``frames``.
+    """
+    clouds = _mean_clouds(x, mask, seg, n_seg, max_frames)
+    posed_frames = np.arange(x.shape[0]) if frames is None else np.asarray(frames, dtype=int)
+    rot, t = _pose_frames(clouds, x, mask, posed_frames)
+    return rot, t, _posed(clouds, mask[posed_frames])
+
+
+def _pose_rows(
+    clouds: _Clouds, x: np.ndarray, mask: np.ndarray, segments: np.ndarray, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``R`` (N, 3, 3) and ``t`` (N, 3) of segment ``segments[n]`` in frame ``frames[n]``:
+    the rows of :func:`_pose_frames`, only those asked for, in blocks of ``POSE_ROWS``
+    (one compiled shape for every recording)."""
+    n = segments.size
+    pad = -n % POSE_ROWS
+    segments, frames = np.concatenate([segments, np.zeros(pad, int)]), np.concatenate([frames, np.zeros(pad, int)])
+    index = clouds.index[segments]  # (N, P)
+    seen = mask[frames[:, None], np.maximum(index, 0)] & (index >= 0) & (np.arange(n + pad) < n)[:, None]
+    pts = np.where(seen[..., None], x[frames[:, None], np.maximum(index, 0)], 0.0)
+    weights, ref = seen * clouds.ref_weight[segments], clouds.ref[segments]
+    block = [slice(lo, lo + POSE_ROWS) for lo in range(0, n + pad, POSE_ROWS)]
+    blocks = [_program_cache.call(_align_rows, pts[b], ref[b], weights[b]) for b in block]
+    return (np.concatenate([np.asarray(b[k]) for b in blocks])[:n] for k in range(2))
+
+
+class _PoseRows:
+    """The poses asked for so far, each (segment, frame) posed once, in as few passes as
+    there are requests: rows of :func:`_segment_poses` on the whole recording (the same
+    mean clouds, each frame aligned on its own)."""
+
+    def __init__(self, clouds: _Clouds, x: np.ndarray, mask: np.ndarray) -> None:
+        self._clouds, self._x, self._mask = clouds, x, mask
+        self._keys = np.zeros(0, np.int64)  # segment * F + frame, sorted
+        self._rot, self._t = np.zeros((0, 3, 3)), np.zeros((0, 3))
+
+    def _key(self, segment: int | np.ndarray, frames: np.ndarray) -> np.ndarray:
+        return np.asarray(segment, np.int64) * self._x.shape[0] + np.asarray(frames, np.int64)
+
+    def need(self, requests: list[tuple[int, np.ndarray]]) -> None:
+        """Pose ``(segment, frames)`` of every request not posed yet, in one pass."""
+        if not requests:
+            return
+        keys = np.unique(np.concatenate([self._key(s, f) for s, f in requests]))
+        missing = keys[~np.isin(keys, self._keys)]
+        if missing.size:
+            rot, t = _pose_rows(self._clouds, self._x, self._mask, missing // self._x.shape[0],
+                                missing % self._x.shape[0])
+            order = np.argsort(np.concatenate([self._keys, missing]), kind="stable")
+            self._keys = np.concatenate([self._keys, missing])[order]
+            self._rot, self._t = np.concatenate([self._rot, rot])[order], np.concatenate([self._t, t])[order]
+
+    def take(self, frames: np.ndarray, segment: int) -> tuple[np.ndarray, np.ndarray]:
+        """``R`` (F, 3, 3), ``t`` (F, 3) of ``segment`` on ``frames`` (posed first if needed)."""
+        keys = self._key(segment, frames)
+        row = np.searchsorted(self._keys, keys)
+        if not np.array_equal(self._keys[np.minimum(row, max(self._keys.size - 1, 0))], keys):
+            self.need([(segment, frames)])
+            row = np.searchsorted(self._keys, keys)
+        return self._rot[row], self._t[row]
 
 
 def _sweep_deg(
@@ -211,13 +306,11 @@ def _sweep_deg(
     return float(np.median(angles)) if angles else float("nan")
 
 
-def _variance_cost(
-    c: Float[Array, " 3"], rot: Float[Array, "F 3 3"], t: Float[Array, "F 3"], x: Float[Array, "F K 3"],
-    w: Float[Array, "F K"],
-) -> Float[Array, ""]:
-    """``mean_k var_f |x_kf - R_f^T (c - t_f)|`` over the markers seen in two or more frames."""
-    joint = jnp.einsum("fji,fj->fi", rot, c[None] - t)  # R^T (c - t)
-    d = jnp.sqrt(jnp.sum((x - joint[:, None]) ** 2, axis=-1) + 1e-18)
+def _variance_cost(c: Float[Array, " 3"], y: Float[Array, "3 F K"], w: Float[Array, "F K"]) -> Float[Array, ""]:
+    """``mean_k var_f |y_kf - c|`` over the markers seen in two or more frames, with the
+    markers ``y_kf = R_f x_kf + t_f`` in the anchor's frame (three coordinate planes): the
+    same distances as ``|x_kf - R_f^T (c - t_f)|``, the centre carried into the world."""
+    d = jnp.sqrt((y[0] - c[0]) ** 2 + (y[1] - c[1]) ** 2 + (y[2] - c[2]) ** 2 + 1e-18)
     n = jnp.maximum(jnp.sum(w, axis=0), 1.0)
     mean = jnp.sum(w * d, axis=0) / n
     var = jnp.sum(w * (d - mean) ** 2, axis=0) / n
@@ -227,11 +320,7 @@ def _variance_cost(
 
 @jax.jit
 def _solve(
-    c0: Float[Array, "B 3"],
-    rot: Float[Array, "B F 3 3"],
-    t: Float[Array, "B F 3"],
-    x: Float[Array, "B F K 3"],
-    w: Float[Array, "B F K"],
+    c0: Float[Array, "B 3"], y: Float[Array, "B 3 F K"], w: Float[Array, "B F K"]
 ) -> tuple[Float[Array, "B 3"], Float[Array, " B"], Float[Array, " B"], Int[Array, " B"], Int[Array, " B"],
            Float[Array, "B 3"], Float[Array, "B 3 3"]]:
     """:func:`_variance_cost` minimised by BFGS, vmapped over (joint, anchor).
@@ -240,17 +329,17 @@ def _solve(
     eigenvalues (ascending) and eigenvectors (columns) of the Hessian at ``c*``.
     """
 
-    def one(c0, rot, t, x, w):
+    def one(c0, y, w):
         def cost(c, args):
             return _variance_cost(c, *args)
 
-        args = (rot, t, x, w)
+        args = (y, w)
         sol = optx.minimise(cost, optx.BFGS(rtol=1e-10, atol=1e-12), c0, args=args, max_steps=300, throw=False)
         lam, vec = jnp.linalg.eigh(jax.hessian(cost)(sol.value, args))
         return (sol.value, cost(c0, args), cost(sol.value, args), sol.stats["num_steps"], sol.result._value,
                 lam, vec)
 
-    return jax.vmap(one)(c0, rot, t, x, w)
+    return jax.vmap(one)(c0, y, w)
 
 
 def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None = None) -> tuple[np.ndarray, ...]:
@@ -271,7 +360,7 @@ def _solve_all(problems: list[tuple[np.ndarray, ...]], one_per_call: bool | None
         outs = [_program_cache.call(_solve, *(a[None] for a in p)) for p in problems]
         return tuple(np.concatenate([np.asarray(o[k]) for o in outs]) for k in range(len(outs[0])))
     # padding problems: all weights 0, so a zero cost that BFGS leaves at once
-    empty = problems[0][:4] + (np.zeros_like(problems[0][4]),)
+    empty = problems[0][:2] + (np.zeros_like(problems[0][2]),)
     padded = problems + [empty] * (bucket_size(len(problems), minimum=8) - len(problems))
     out = _program_cache.call(_solve, *(np.stack(p) for p in zip(*padded)))
     return tuple(np.asarray(v)[: len(problems)] for v in out)
@@ -302,34 +391,44 @@ def anchored_centres(
     jp = np.asarray(joint_positions, float)
     n_frames, n_joints = jp.shape[0], edges.shape[0]
     n_seg = int(max(seg.max(initial=-1), edges.max(initial=-1))) + 1
-    rot_all, t_all, posed_all = _segment_poses(x, mask, seg, n_seg, max_frames)
+    clouds = _mean_clouds(x, mask, seg, n_seg, max_frames)
+    posed_all = _posed(clouds, mask)
+    poses = _PoseRows(clouds, x, mask)
 
     # One problem per (joint, anchor): evenly spaced posed frames, padded to bucket sizes
     # (frames, markers, problems) so that trials share compiled shapes.
     n_sub = min(max_frames, n_frames)
     n_pad = bucket_size(n_sub)
     width = bucket_size(max(int(((seg == a) | (seg == b)).sum()) for a, b in edges) if n_joints else 1, minimum=8)
-    problems, keys, other_local = [], [], []
+    chosen = []  # (joint, anchor, frames)
     for j, (a, b) in enumerate(edges.tolist()):
-        markers = np.flatnonzero((seg == a) | (seg == b))
         for anchor in (a, b):
-            rot, t = rot_all[:, anchor], t_all[:, anchor]
             frames = np.flatnonzero(posed_all[:, anchor] & np.isfinite(jp[:, j]).all(axis=1))
-            if frames.size < 10:
-                continue
-            frames = frames[np.unique(np.linspace(0, frames.size - 1, n_sub).astype(int))]
-            sel = np.concatenate([frames, np.full(n_pad - frames.size, frames[0])])
-            real = np.arange(n_pad) < frames.size
-            xs = np.zeros((n_pad, width, 3))
-            ws = np.zeros((n_pad, width))
-            xs[:, : markers.size] = np.where(mask[sel][:, markers, None], x[sel][:, markers], 0.0)
-            ws[:, : markers.size] = mask[sel][:, markers] & real[:, None]
-            local = np.einsum("fij,fj->fi", rot[frames], jp[frames, j]) + t[frames]  # R j + t
-            c0 = np.median(local, axis=0)
-            other = np.flatnonzero(seg == (b if anchor == a else a))
-            problems.append((c0, rot[sel], t[sel], xs, ws))
-            keys.append((j, anchor, _sweep_deg(x[frames][:, other], mask[frames][:, other], rot[frames], t[frames], c0)))
-            other_local.append(_median_in_frame(x[frames][:, other], mask[frames][:, other], rot[frames], t[frames]))
+            if frames.size >= 10:
+                chosen.append((j, anchor, frames[np.unique(np.linspace(0, frames.size - 1, n_sub).astype(int))]))
+    poses.need([(anchor, frames) for _, anchor, frames in chosen])  # what the fits read, in one pass
+    problems, keys, other_local = [], [], []
+    for j, anchor, frames in chosen:
+        a, b = edges[j]
+        markers = np.flatnonzero((seg == a) | (seg == b))
+        rot, t = poses.take(frames, anchor)
+        pad = n_pad - frames.size
+        sel = np.concatenate([frames, np.full(pad, frames[0])])
+        real = np.arange(n_pad) < frames.size
+        xs = np.zeros((n_pad, width, 3))
+        ws = np.zeros((n_pad, width))
+        seen = mask[np.ix_(sel, markers)]
+        xs[:, : markers.size] = np.where(seen[..., None], x[np.ix_(sel, markers)], 0.0)
+        ws[:, : markers.size] = seen & real[:, None]
+        local = np.einsum("fij,fj->fi", rot, jp[frames, j]) + t  # R j + t
+        c0 = np.median(local, axis=0)
+        other = np.flatnonzero(seg == (b if anchor == a else a))
+        y = np.einsum("fij,fkj->ifk", np.concatenate([rot, np.repeat(rot[:1], pad, 0)]), xs)
+        y += np.concatenate([t, np.repeat(t[:1], pad, 0)]).T[:, :, None]  # (3, F, K): in the anchor's frame
+        problems.append((c0, y, ws))
+        x_other, seen_other = x[np.ix_(frames, other)], mask[np.ix_(frames, other)]
+        keys.append((j, anchor, _sweep_deg(x_other, seen_other, rot, t, c0)))
+        other_local.append(_median_in_frame(x_other, seen_other, rot, t))
 
     out = jp.copy()
     anchor_of = np.full(n_joints, -1)
@@ -366,12 +465,12 @@ def anchored_centres(
                 continue
             c = c0[i] + vec[i][:, keep] @ m[keep]
             radial[j] = _radial_cosines(other_local[i], c, vec[i])
-            rot, t = rot_all[:, anchor], t_all[:, anchor]
+            rot, t = poses.take(np.arange(n_frames), anchor)  # the anchor on every frame
             centre = np.einsum("fji,fj->fi", rot, c[None] - t)
             out[:, j] = np.where(posed_all[:, anchor, None], centre, np.nan)
             moved[j], shift[j] = True, float(np.linalg.norm(c - c0[i]))
         directions = {j: vec[i] for j, i in best.items()}
-        bone_cosines = _bone_cosines(out, edges, anchor_of, directions, rot_all, posed_all, n_sub)
+        bone_cosines = _bone_cosines(out, edges, anchor_of, directions, poses, posed_all, n_sub)
     else:
         bone_cosines = np.full((n_joints, n_joints, 3), np.nan)
     return AnchoredCentres(
@@ -411,7 +510,7 @@ def _bone_cosines(
     edges: Int[np.ndarray, "J 2"],
     anchor: Int[np.ndarray, " J"],
     directions: dict[int, Float[np.ndarray, "3 3"]],
-    rot: Float[np.ndarray, "F S 3 3"],
+    poses: _PoseRows,
     posed: Bool[np.ndarray, "F S"],
     n_sub: int,
 ) -> Float[np.ndarray, "J J 3"]:
@@ -420,21 +519,25 @@ def _bone_cosines(
     to each joint sharing a segment with ``j``, in the anchor's frame (``R u``), median over
     at most ``n_sub`` evenly spaced frames where the anchor is posed and both centres exist.
     A bone on the anchor keeps one direction in its frame; one on the other segment turns
-    with the joint, hence the median."""
+    with the joint, hence the median. The frames of all bones are posed in one pass."""
     n_joints = edges.shape[0]
     out = np.full((n_joints, n_joints, 3), np.nan)
-    for j, vec in directions.items():
+    bones = []  # (j, i, frames, bone vectors there)
+    for j in directions:
         a = int(anchor[j])
         for i in range(n_joints):
             if i == j or not set(edges[i].tolist()) & set(edges[j].tolist()):
                 continue
             bone = centres[:, i] - centres[:, j]
             frames = np.flatnonzero(posed[:, a] & np.isfinite(bone).all(axis=1))
-            if frames.size == 0:
-                continue
-            frames = frames[np.unique(np.linspace(0, frames.size - 1, min(n_sub, frames.size)).astype(int))]
-            local = np.einsum("fab,fb->fa", rot[frames, a], bone[frames])
-            length = np.linalg.norm(local, axis=1, keepdims=True)
-            unit = local / np.maximum(length, 1e-12)
-            out[j, i] = np.median(np.abs(unit @ vec), axis=0)
+            if frames.size:
+                frames = frames[np.unique(np.linspace(0, frames.size - 1, min(n_sub, frames.size)).astype(int))]
+                bones.append((j, i, frames, bone[frames]))
+    poses.need([(int(anchor[j]), frames) for j, _, frames, _ in bones])
+    for j, i, frames, bone in bones:
+        rot, _ = poses.take(frames, int(anchor[j]))
+        local = np.einsum("fab,fb->fa", rot, bone)
+        length = np.linalg.norm(local, axis=1, keepdims=True)
+        unit = local / np.maximum(length, 1e-12)
+        out[j, i] = np.median(np.abs(unit @ directions[j]), axis=0)
     return out

@@ -371,6 +371,36 @@ def test_segment_poses_on_frames_are_the_whole_recordings_rows(sparse):
     assert np.array_equal(rot[~posed], np.broadcast_to(np.eye(3), rot[~posed].shape)) and not t[~posed].any()
 
 
+def test_anchored_pose_rows_are_the_segment_poses_rows(sparse):
+    """The anchored refit poses only the (segment, frame) rows its fits read, in one pass
+    per request: the same poses as every segment on every frame (to rounding), also where
+    gaps leave segments unposed, and a row asked for twice is posed once."""
+    from jaxskel.joints import _anchored_centres as ac
+
+    x, mask, truth, _ = sparse
+    mask = mask.copy()
+    mask[100:400, :5] = False
+    s, seg = truth.n_segments, truth.marker_segment
+    rot_all, t_all, posed_all = ac._segment_poses(x, mask, seg, s, ac.MAX_FRAMES)
+    rows = ac._PoseRows(ac._mean_clouds(x, mask, seg, s, ac.MAX_FRAMES), x, mask)
+    rng = np.random.default_rng(0)
+    asked = [(int(rng.integers(s)), np.sort(rng.choice(x.shape[0], 50, replace=False))) for _ in range(6)]
+    def keys(requests):
+        return {(sg, int(f)) for sg, frames in requests for f in frames}
+
+    rows.need(asked)
+    assert rows._keys.size == len(keys(asked))  # each row posed once
+    extra = (1, np.arange(90, 410))  # posed on demand by take
+    for segment, frames in asked + [extra]:
+        rot, t = rows.take(frames, segment)
+        posed = posed_all[frames, segment]
+        assert posed.any()
+        np.testing.assert_allclose(rot[posed], rot_all[frames, segment][posed], atol=1e-12)
+        np.testing.assert_allclose(t[posed], t_all[frames, segment][posed], atol=1e-12)
+    rows.take(*asked[0][::-1])  # asked again: nothing new is posed
+    assert rows._keys.size == len(keys(asked + [extra]))
+
+
 def _sphere_misfit_einsum(x, mask, seg, s, frames, poses):
     """The anchored sphere misfit written with one einsum per sum over frames (F, S, M
     axes), the algebraic start and the Gauss-Newton steps exactly as documented."""

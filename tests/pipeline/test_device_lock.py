@@ -14,16 +14,21 @@ def test_every_jax_stage_of_a_batch_runs_under_the_device_lock(monkeypatch, tmp_
     from jaxskel.joints import _anchored_centres
     from jaxskel.pipeline import _local
 
-    calls: list[tuple[str, bool]] = []  # the pose check imports the function from here when called
-    real = _anchored_centres._segment_poses
+    calls: list[tuple[str, bool]] = []  # every JAX call of the segment poses goes through these
 
-    def guarded(*args, **kwargs):
-        calls.append((__import__("threading").current_thread().name, _local.DEVICE_LOCK._is_owned()))
-        return real(*args, **kwargs)
+    def guarded(real):
+        def call(*args, **kwargs):
+            calls.append((__import__("threading").current_thread().name, _local.DEVICE_LOCK._is_owned()))
+            return real(*args, **kwargs)
+
+        return call
 
     # Kept: an instrument (it records whether the lock is held and calls through), the only
-    # way to check a race by ownership instead of by timing.
-    monkeypatch.setattr(_anchored_centres, "_segment_poses", guarded)
+    # way to check a race by ownership instead of by timing. The mean clouds and the two
+    # alignment passes are all the device work of the pose check's and the anchored refit's
+    # segment poses.
+    for name in ("_mean_clouds", "_pose_frames", "_pose_rows"):
+        monkeypatch.setattr(_anchored_centres, name, guarded(getattr(_anchored_centres, name)))
     body = synth.full_body()
     trials = [synth.simulate(body, duration=4.0, seed=70 + i, noise=0.001)[0] for i in range(4)]
     result = jaxskel.fit_batch(trials, tmp_path, batch_size=2, jobs=2, n_segments=len(body.segment_names))
