@@ -301,6 +301,8 @@ def solve_chunked(
 
     def part(arr: np.ndarray, lo: int, hi: int) -> np.ndarray:
         piece = arr[lo:hi]
+        if len(piece) == chunk:
+            return piece
         return np.concatenate([piece, np.zeros((chunk - len(piece),) + piece.shape[1:], piece.dtype)])
 
     pending: list[tuple[int, Any]] = []
@@ -776,14 +778,17 @@ def solve_trees(
     for members in groups.values():
         owner = np.concatenate([np.full(len(problems[i].edges), i) for i in members])
         row = np.concatenate([np.arange(len(problems[i].edges)) for i in members])
-        steps = np.concatenate([problems[i].first_steps for i in members])
-        order = np.argsort(-steps, kind="stable")
-
-        def pooled(name: str, members=members, order=order) -> np.ndarray:
-            return np.concatenate([getattr(problems[i], name) for i in members])[order]
-
         widest = bucket_size(max(len(problems[i].edges) for i in members), minimum=4, steps_per_octave=1)
         size = chunk or (1 if uses_cpu(devices) else widest)
+        steps = np.concatenate([problems[i].first_steps for i in members])
+        # one joint per call: the order does not matter, and one trial's arrays go as they are
+        order = np.argsort(-steps, kind="stable") if size > 1 else np.arange(steps.size)
+
+        def pooled(name: str, members=members, order=order, size=size) -> np.ndarray:
+            if len(members) == 1 and size == 1:
+                return getattr(problems[members[0]], name)
+            return np.concatenate([getattr(problems[i], name) for i in members])[order]
+
         first = problems[members[0]]
         rtol, atol = first.tolerances
         sol = solve_chunked(
