@@ -90,10 +90,12 @@ def offset_system(
     the cost.
     """
     n_frames = rot.shape[0]
-    # R_a^T R_b as a broadcast product (a fused elementwise loop) and the frame sum as one
-    # matrix product: written as two einsums, XLA:CPU would run the first as a tiny matrix
-    # product per frame and fuse it into the second.
-    rtr = jnp.sum(rot[:, pairs[:, 0], :, :, None] * rot[:, pairs[:, 1], :, None, :], axis=2)  # (F, P, 3, 3)
+    # R_a^T R_b as three broadcast products summed (fused elementwise loops) and the frame
+    # sum as one matrix product: written as two einsums, XLA:CPU would run the first as a
+    # tiny matrix product per frame and fuse it into the second; as one broadcast product
+    # reduced over its middle axis, it runs the reduction as a slow loop.
+    ra, rb = rot[:, pairs[:, 0]], rot[:, pairs[:, 1]]
+    rtr = sum(ra[:, :, k, :, None] * rb[:, :, k, None, :] for k in range(3))  # (F, P, 3, 3)
     pair_sums = (obs_weight.T @ rtr.reshape(n_frames, -1)).reshape((-1,) + rtr.shape[1:])
     pair_sums = jnp.concatenate([pair_sums, jnp.zeros_like(pair_sums[:, :1])], axis=1)  # row P: no pair
     block = pair_sums[:, pair_index]  # (N, U, U, 3, 3)
