@@ -124,15 +124,20 @@ def _geometry(m, c):
 
 
 def _frame_costs(m, beta, alpha, c, r):
-    d, _, _ = _geometry(m, c)
+    return _costs_at(_geometry(m, c)[0], beta, alpha, r)
+
+
+def _costs_at(d, beta, alpha, r):
+    """Per-frame costs from the distances ``d`` (F, K)."""
     e = d - r
     return 0.5 * jnp.sum(beta * (e * e + alpha * d), axis=1)
 
 
-def _blocks(m, beta, alpha, c, r, curvature: str):
+def _blocks(m, beta, alpha, c, r, curvature: str, geometry=None):
     """Planar :meth:`PairProblem.blocks`: ``(a6, b, c_diag, g_c, g_r)`` with ``a6`` the
-    six planes of each frame's symmetric block, ``b`` and ``g_c`` three planes."""
-    d, u, inv_d = _geometry(m, c)
+    six planes of each frame's symmetric block, ``b`` and ``g_c`` three planes.
+    ``geometry``: :func:`_geometry` at ``c``, where the caller has it already."""
+    d, u, inv_d = _geometry(m, c) if geometry is None else geometry
     e = d - r
     # u u^T + s (I - u u^T) = (1 - s) u u^T + s I
     if curvature == "none":
@@ -326,7 +331,8 @@ class PairLM(eqx.Module):
         (c, r), mu = s.params, s.aux
         hi = jax.lax.Precision.HIGHEST
         tiny = jnp.finfo(self.beta.dtype).tiny
-        a6, b, c_diag, g_c, g_r = _blocks(self.m, self.beta, self.alpha, c, r, "positive")
+        geometry = _geometry(self.m, c)  # at the current joints: the blocks and the kept joints' costs
+        a6, b, c_diag, g_c, g_r = _blocks(self.m, self.beta, self.alpha, c, r, "positive", geometry)
         a_diag = (a6[0], a6[3], a6[5])
         # Marquardt scaling by the diagonal, floored so flat directions stay damped
         floor = self.frame_damping.floor * jnp.maximum(jnp.max(jnp.stack([jnp.max(x) for x in a_diag])), tiny)
@@ -345,7 +351,7 @@ class PairLM(eqx.Module):
         r_trial = r + dr
         stepped = tuple(ci + di for ci, di in zip(c, dc))
         moved = self.frame_costs(stepped, r_trial)
-        kept = self.frame_costs(c, r_trial)
+        kept = _costs_at(geometry[0], self.beta, self.alpha, r_trial)
         take = moved <= kept
         c_trial = tuple(jnp.where(take, x, y) for x, y in zip(stepped, c))
         c_trial, cost_frames = self._reseed(c, r_trial, c_trial, jnp.minimum(moved, kept), s.steps)
