@@ -412,19 +412,16 @@ def anchored_centres(
         a, b = edges[j]
         markers = np.flatnonzero((seg == a) | (seg == b))
         rot, t = poses.take(frames, anchor)
-        pad = n_pad - frames.size
-        sel = np.concatenate([frames, np.full(pad, frames[0])])
-        real = np.arange(n_pad) < frames.size
-        xs = np.zeros((n_pad, width, 3))
+        seen = mask[np.ix_(frames, markers)]
+        xs = np.where(seen[..., None], x[np.ix_(frames, markers)], 0.0)
+        # the markers in the anchor's frame, as planes (3, F, K); padding (frames, markers) weighs 0
+        y = np.zeros((3, n_pad, width))
+        y[:, : frames.size, : markers.size] = np.einsum("fij,fkj->ifk", rot, xs) + t.T[:, :, None]
         ws = np.zeros((n_pad, width))
-        seen = mask[np.ix_(sel, markers)]
-        xs[:, : markers.size] = np.where(seen[..., None], x[np.ix_(sel, markers)], 0.0)
-        ws[:, : markers.size] = seen & real[:, None]
+        ws[: frames.size, : markers.size] = seen
         local = np.einsum("fij,fj->fi", rot, jp[frames, j]) + t  # R j + t
         c0 = np.median(local, axis=0)
         other = np.flatnonzero(seg == (b if anchor == a else a))
-        y = np.einsum("fij,fkj->ifk", np.concatenate([rot, np.repeat(rot[:1], pad, 0)]), xs)
-        y += np.concatenate([t, np.repeat(t[:1], pad, 0)]).T[:, :, None]  # (3, F, K): in the anchor's frame
         problems.append((c0, y, ws))
         x_other, seen_other = x[np.ix_(frames, other)], mask[np.ix_(frames, other)]
         keys.append((j, anchor, _sweep_deg(x_other, seen_other, rot, t, c0)))
