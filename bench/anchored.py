@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pickle
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,7 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.fast_core import baseline_root  # noqa: E402
 from bench.worker import limit_blas  # noqa: E402
 
 limit_blas()
@@ -84,13 +81,10 @@ def worker(inputs_path: Path, out_path: Path, calls: int) -> None:
 
 def run_worker(code_root: Path, inputs_path: Path, calls: int) -> dict:
     """Run :func:`worker` in a new process that imports jaxskel from ``code_root``."""
+    from bench.fast_core import run_in_checkout  # the parent's; a worker's bench may be the baseline's
+
     out = Path(tempfile.mkstemp(suffix=".pkl")[1])
-    script = (f"import sys; sys.path.insert(0, {str(code_root)!r}); sys.path.insert(1, {str(ROOT)!r});"
-              f"import importlib.util as u; from pathlib import Path;"
-              f"spec = u.spec_from_file_location('anchored_worker', {__file__!r}); m = u.module_from_spec(spec);"
-              f"spec.loader.exec_module(m); m.worker(Path({str(inputs_path)!r}), Path({str(out)!r}), {calls})")
-    subprocess.run([sys.executable, "-c", script], check=True, cwd=str(code_root),
-                   env={**os.environ, "PYTHONPATH": str(code_root)})
+    run_in_checkout(code_root, __file__, "worker", inputs_path, out, calls)
     result = pickle.loads(out.read_bytes())
     out.unlink()
     return result
@@ -117,6 +111,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--calls", type=int, default=7)
     ap.add_argument("--markdown", type=Path)
     args = ap.parse_args(argv)
+    from bench.fast_core import baseline_root
+
     base = baseline_root(args.baseline)
     inputs = Path(tempfile.mkstemp(suffix=".pkl")[1])
     record(inputs)

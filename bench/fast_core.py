@@ -88,16 +88,22 @@ def worker(trial_path: Path, out_path: Path, repeats: int) -> None:
     )
 
 
+def run_in_checkout(code_root: Path, script: str, function: str, *args) -> None:
+    """Call ``function(*args)`` of the file ``script`` in a new process that imports jaxskel from
+    ``code_root`` (first on the path; ``bench`` from this checkout). ``args``: paths and numbers."""
+    call = ", ".join(f"Path({str(a)!r})" if isinstance(a, Path) else repr(a) for a in args)
+    source = (f"import sys; sys.path.insert(0, {str(code_root)!r}); sys.path.insert(1, {str(ROOT)!r});"
+              f"import importlib.util as u; from pathlib import Path;"
+              f"spec = u.spec_from_file_location('bench_worker', {script!r}); m = u.module_from_spec(spec);"
+              f"spec.loader.exec_module(m); m.{function}({call})")
+    env = {**os.environ, "PYTHONPATH": str(code_root)}
+    subprocess.run([sys.executable, "-c", source], env=env, check=True, cwd=str(code_root))
+
+
 def run_worker(code_root: Path, trial_path: Path, repeats: int) -> dict:
     """Run :func:`worker` in a new process that imports jaxskel from ``code_root``."""
     out = Path(tempfile.mkstemp(suffix=".npz")[1])
-    env = {**os.environ, "PYTHONPATH": str(code_root)}
-    script = (f"import sys; sys.path.insert(0, {str(code_root)!r}); sys.path.insert(1, {str(ROOT)!r});"
-              f"import importlib.util as u; from pathlib import Path;"
-              f"spec = u.spec_from_file_location('fast_core_worker', {__file__!r}); m = u.module_from_spec(spec);"
-              f"spec.loader.exec_module(m); m.worker(Path({str(trial_path)!r}), Path({str(out)!r}), {repeats})")
-    # this file is loaded by its path; jaxskel comes from code_root (first on the path)
-    subprocess.run([sys.executable, "-c", script], env=env, check=True, cwd=str(code_root))
+    run_in_checkout(code_root, __file__, "worker", trial_path, out, repeats)
     with np.load(out) as f:
         rec = {k: f[k] for k in f.files}
     out.unlink()
